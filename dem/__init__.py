@@ -1,0 +1,1 @@
+"""dem: a numba discrete element engine (spheres and disks). Imports without dolfinx."""

@@ -1,0 +1,1 @@
+"""Contact laws, one module each, registered in one table."""
