@@ -1,0 +1,1 @@
+"""Parameterised gmsh geometries with named physical groups (pure functions on a gmsh model)."""
