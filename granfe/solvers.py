@@ -76,6 +76,8 @@ def make_snes_problem(F, w: fem.Function, bcs, prefix: str, options: dict | None
     opts = dict(DIRECT)
     if options:
         opts.update(options)
+    if opts.get("pc_type") not in ("lu", "cholesky"):
+        opts.pop("pc_factor_mat_solver_type", None)
     problem = NonlinearProblem(F, w, bcs=bcs, J=J, petsc_options_prefix=prefix, petsc_options=opts)
     if near_nullspace is not None:
         problem.A.setNearNullSpace(near_nullspace)
