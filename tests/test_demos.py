@@ -1,0 +1,44 @@
+"""Every demo runs briefly (GRANFE_SHORT=1), serially and under mpiexec -n 2, and passes its
+own closing assertions; results.json must be written."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MPIEXEC = Path(sys.executable).parent / "mpiexec"
+
+# (script, runs under MPI)
+DEMOS = [
+    ("demos/2d/plate_hole.py", True),
+]
+DEMOS += [(str(p.relative_to(ROOT)), True) for p in sorted((ROOT / "demos" / "1d").glob("*.py"))]
+
+
+def _run(cmd, out):
+    env = dict(os.environ, GRANFE_SHORT="1", PYVISTA_OFF_SCREEN="true", MPLBACKEND="Agg",
+               NUMBA_NUM_THREADS="1")
+    proc = subprocess.run(cmd + ["--out", str(out)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    results = json.loads((out / "results.json").read_text())
+    assert results, "empty results.json"
+    return results
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", [d for d, _ in DEMOS])
+def test_demo_serial(script, tmp_path):
+    _run([sys.executable, script], tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", [d for d, mpi in DEMOS if mpi])
+def test_demo_two_ranks(script, tmp_path):
+    if not MPIEXEC.exists():
+        pytest.skip("mpiexec not in the virtual environment")
+    _run([str(MPIEXEC), "-n", "2", sys.executable, script], tmp_path)
