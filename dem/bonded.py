@@ -21,7 +21,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
-__all__ = ["BondedAssembly", "find_bonds", "hexagonal_lattice", "hexagonal_lattice_constants"]
+__all__ = ["BondedAssembly", "BondedSubproblem", "find_bonds", "hexagonal_lattice",
+           "hexagonal_lattice_constants", "hexagonal_lattice_micropolar"]
 
 
 def hexagonal_lattice(lower, upper, radius: float) -> np.ndarray:
@@ -48,6 +49,19 @@ def hexagonal_lattice_constants(kn: float, kt: float) -> tuple[float, float]:
     """
     s = np.sqrt(3) / 4
     return s * (kn - kt), s * (kn + kt)
+
+
+def hexagonal_lattice_micropolar(kn: float, kt: float, kr: float) -> dict[str, float]:
+    """Micropolar (Eringen) constants of the bonded hexagonal lattice, per unit thickness.
+
+    Matching the bond energy with the continuum energy for a linear field (u, phi = theta):
+    the relative displacement at a contact is ``d eps n`` with ``eps = grad u + e . phi``,
+    so ``lam = sqrt(3)/4 (kn - kt)``, ``2 mu + kappa = sqrt(3)/2 (kn + kt)``,
+    ``kappa = sqrt(3) kt`` and ``gamma = sqrt(3) kr`` (Eringen's ``mu`` is then
+    ``sqrt(3)/4 (kn - kt)``; the classical shear modulus is ``mu + kappa / 2``).
+    """
+    s = np.sqrt(3) / 4
+    return {"lam": s * (kn - kt), "mu": s * (kn - kt), "kappa": 4 * s * kt, "gamma": 4 * s * kr}
 
 
 def find_bonds(x: np.ndarray, radius: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:
@@ -164,14 +178,25 @@ class BondedAssembly:
 
 
 class BondedSubproblem:
-    """Quasi-static solve of a :class:`BondedAssembly` with prescribed particles (ghosts).
+    """Quasi-static solve of a :class:`BondedAssembly` with prescribed particles.
 
-    ``K_ff q_f = f_ext,f - K_fp q_p`` factorised once (SuperLU).
+    ``K_ff q_f = f_ext,f - K_fp q_p`` factorised once (SuperLU). The prescribed particles
+    are the ``ghosts`` (values given to :meth:`solve`, e.g. by the coupling) followed by
+    ``fixed`` ones whose values live in :attr:`fixed_u` / :attr:`fixed_theta` (supports,
+    a rigid punch; change them between solves to load the assembly).
     """
 
-    def __init__(self, assembly: BondedAssembly, prescribed: np.ndarray):
+    def __init__(self, assembly: BondedAssembly, ghosts: np.ndarray, fixed: np.ndarray | None = None):
         self.assembly = a = assembly
-        prescribed = np.asarray(prescribed, dtype=np.int64)
+        ghosts = np.asarray(ghosts, dtype=np.int64)
+        fixed = np.zeros(0, dtype=np.int64) if fixed is None else np.asarray(fixed, dtype=np.int64)
+        if np.intersect1d(ghosts, fixed).size:
+            raise ValueError("a particle cannot be both a ghost and fixed")
+        self.n_ghost = len(ghosts)
+        self.fixed = fixed
+        self.fixed_u = np.zeros((len(fixed), a.dim))
+        self.fixed_theta = np.zeros(len(fixed)) if a.dim == 2 else np.zeros((len(fixed), 3))
+        prescribed = np.concatenate([ghosts, fixed])
         ndof = a.dofs_per_particle
         is_p = np.zeros(len(a.x), bool)
         is_p[prescribed] = True
@@ -189,9 +214,14 @@ class BondedSubproblem:
                              "mechanism (no bond path to a prescribed particle)") from err
         self.f_ext = np.zeros(len(a.x) * ndof)
 
-    def solve(self, u_p: np.ndarray, theta_p: np.ndarray):
-        """Displacements (n, dim) and rotations of all particles for prescribed (u_p, theta_p)."""
+    def solve(self, u_ghost: np.ndarray, theta_ghost: np.ndarray):
+        """Displacements (n, dim) and rotations of all particles for given ghost motion."""
         a = self.assembly
+        u_p = np.concatenate([np.reshape(u_ghost, (self.n_ghost, np.shape(u_ghost)[-1]))[:, : a.dim],
+                              self.fixed_u])
+        nr = 1 if a.dim == 2 else 3
+        theta_p = np.concatenate([np.reshape(theta_ghost, (self.n_ghost, nr)),
+                                  np.reshape(self.fixed_theta, (len(self.fixed), nr))])
         ndof = a.dofs_per_particle
         qp = np.empty((len(self.prescribed), ndof))
         qp[:, : a.dim] = u_p[:, : a.dim]

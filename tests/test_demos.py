@@ -15,6 +15,7 @@ MPIEXEC = Path(sys.executable).parent / "mpiexec"
 # (script, runs under MPI)
 DEMOS = [
     ("demos/2d/plate_hole.py", True),
+    ("demos/2d/coupled_punch.py", True),
 ]
 DEMOS += [(str(p.relative_to(ROOT)), True) for p in sorted((ROOT / "demos" / "1d").glob("*.py"))]
 
