@@ -54,6 +54,9 @@ parser.add_argument("--h", type=float, default=0.02 if SHORT else 0.01, help="FE
 parser.add_argument("--windows", type=float, nargs="+",
                     default=[0.06, 0.1] if SHORT else [0.06, 0.08, 0.1, 0.14],
                     help="half-widths of the DE window [m] (depth = half-width)")
+parser.add_argument("--handshake", type=float, default=1.0,
+                    help="overlap depth (FE nodes prescribed deeper than this in the window), in elements")
+parser.add_argument("--ghost-width", type=float, default=2.5, help="ghost band width, in grain diameters")
 parser.add_argument("--out", type=Path, default=Path("output/coupled_punch"))
 args = parser.parse_args()
 comm = MPI.COMM_WORLD
@@ -118,11 +121,16 @@ def fe_at(problem, pts):
 
 
 # ---- 3. coupled runs for several window sizes -------------------------------------------------
+# errors are measured on the grains near the punch common to every window (within half the
+# smallest window) and on all free grains of each window
+a_min = min(args.windows)
+near = np.flatnonzero((np.abs(x_all[:, 0] - L / 2 - x0) < a_min / 2) & (x_all[:, 1] > top_y - a_min / 2))
 runs = []
 for a in args.windows:
     t0 = time.perf_counter()
-    window = Box((L / 2 - a + x0, top_y - a), (L / 2 + a + x0, top_y + 2 * d))
-    regions = CouplingRegions(window, ghost_width=2.5 * d, handshake=args.h)
+    # the box reaches above the free surface so that the overlap lies only along its sides and base
+    window = Box((L / 2 - a + x0, top_y - a), (L / 2 + a + x0, top_y + a))
+    regions = CouplingRegions(window, ghost_width=args.ghost_width * d, handshake=args.handshake * args.h)
     kinds = regions.particle_kinds(x_all)
     keep = np.flatnonzero(kinds >= 0)
     x, kinds = x_all[keep], kinds[keep]
@@ -141,13 +149,20 @@ for a in args.windows:
     ref = u_dem[keep[free]]
     err = np.linalg.norm(coupling.u[free] - ref) / np.linalg.norm(ref)
     err_fe = np.linalg.norm(fe_at(fe_only, x[free]) - ref) / np.linalg.norm(ref)
+    common = np.searchsorted(keep, near)
+    ref_near = u_dem[near]
+    err_near = np.linalg.norm(coupling.u[common] - ref_near) / np.linalg.norm(ref_near)
+    err_fe_near = np.linalg.norm(fe_at(fe_only, x_all[near]) - ref_near) / np.linalg.norm(ref_near)
     runs.append({"window_half_width": a, "grains": int(len(x)), "free_grains": int(len(free)),
                  "iterations": its, "time_s": t_c, "timings": coupling.timings,
-                 "error_vs_full_dem": float(err), "fe_only_error_same_grains": float(err_fe),
+                 "error_vs_full_dem": float(err_near), "fe_only_error_same_grains": float(err_fe_near),
+                 "error_vs_full_dem_all_window_grains": float(err),
+                 "fe_only_error_all_window_grains": float(err_fe),
                  "history": coupling.history})
     if comm.rank == 0:
         print(f"window a = {a:.3f} m: {len(x)} grains, {its} iterations, {t_c:.2f} s, "
-              f"error vs full DEM {err:.3%} (FE only {err_fe:.3%})")
+              f"error vs full DEM near the punch {err_near:.3%} (FE only {err_fe_near:.3%}), "
+              f"over the window {err:.3%} (FE only {err_fe:.3%})")
     last = (coupling, x, keep, free)
 
 # ---- results and figures ------------------------------------------------------------------------
@@ -187,7 +202,7 @@ if comm.rank == 0:
     axes[2].axhline(runs[-1]["fe_only_error_same_grains"], color="k", ls="--", label="FE only")
     axes[2].axvline(t_dem, color="r", ls=":", label="full DEM time")
     axes[2].set_xlabel("run time [s]")
-    axes[2].set_ylabel("relative error of window grain displacements")
+    axes[2].set_ylabel("relative error of grain displacements near the punch")
     axes[2].legend()
     fig.tight_layout()
     fig.savefig(args.out / "coupled_vs_full_dem.png", dpi=120)
