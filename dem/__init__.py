@@ -1,1 +1,19 @@
-"""dem: a numba discrete element engine (spheres and disks). Imports without dolfinx."""
+"""dem: a numba discrete element engine (spheres and disks). Imports without dolfinx.
+
+Public API: `Particles` (FREE, GHOST, FIXED kinds), `ContactMaterial`, `PlaneWall`,
+`box_walls`, `Simulation`, the critical time step helpers and the named errors.
+"""
+
+from dem.contact import LAWS, ContactMaterial
+from dem.errors import (BlowUpError, DemError, DomainError, MaterialError, OverlapError,
+                        TimeStepError)
+from dem.integrate import Simulation
+from dem.neighbours import NeighbourList, build_pairs
+from dem.state import FIXED, FREE, GHOST, Particles
+from dem.timestep import critical_dt, hertz_dt, rayleigh_dt
+from dem.walls import PlaneWall, WallSet, box_walls
+
+__all__ = ["FIXED", "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
+           "DomainError", "MaterialError", "NeighbourList", "OverlapError", "Particles",
+           "PlaneWall", "Simulation", "TimeStepError", "WallSet", "box_walls", "build_pairs",
+           "critical_dt", "hertz_dt", "rayleigh_dt"]

@@ -1,0 +1,113 @@
+"""Pair kinematics, computed once per contact; laws only read them (STYLE.md rule 6).
+
+Conventions: ``n`` is the unit normal from particle i to j (for a wall contact: from the
+particle to the wall); overlap ``delta = r_i + r_j - |x_j - x_i|`` > 0 in contact;
+``vn = (v_c,i - v_c,j) . n`` (> 0 approaching, = d delta/dt) and ``vt`` the tangential
+part of the relative contact-point velocity of i with respect to j. Contact-point arms are
+``r - delta/2`` (LIGGGHTS). The tangential force returned by a law acts on j along
+``+ft`` and on i along ``-ft``; the normal force ``fn`` pushes j along ``+n``.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+__all__ = ["coulomb_tangential", "pair_kinematics", "project_history", "wall_kinematics"]
+
+
+@njit(cache=True, fastmath=False)
+def _relative(nx, ny, nz, vix, viy, viz, vjx, vjy, vjz, wx, wy, wz):
+    """Relative contact velocity v_i - v_j + w x n with w = a_i w_i + a_j w_j."""
+    rx = vix - vjx + (wy * nz - wz * ny)
+    ry = viy - vjy + (wz * nx - wx * nz)
+    rz = viz - vjz + (wx * ny - wy * nx)
+    vn = rx * nx + ry * ny + rz * nz
+    return vn, rx - vn * nx, ry - vn * ny, rz - vn * nz
+
+
+@njit(cache=True)
+def pair_kinematics(x, v, omega, radius, mass, i, j):
+    """Kinematics of pair (i, j) from arrays x, v, omega (n, 3), radius, mass (n,).
+
+    Returns (nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, arm_i, arm_j) with
+    reff = r_i r_j/(r_i + r_j) [m] and meff = m_i m_j/(m_i + m_j) [kg]."""
+    dx = x[j, 0] - x[i, 0]
+    dy = x[j, 1] - x[i, 1]
+    dz = x[j, 2] - x[i, 2]
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    ri = radius[i]
+    rj = radius[j]
+    delta = ri + rj - d
+    if delta <= 0.0 or d == 0.0:
+        return 0.0, 0.0, 0.0, delta, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    nx, ny, nz = dx / d, dy / d, dz / d
+    ai = ri - 0.5 * delta
+    aj = rj - 0.5 * delta
+    wx = ai * omega[i, 0] + aj * omega[j, 0]
+    wy = ai * omega[i, 1] + aj * omega[j, 1]
+    wz = ai * omega[i, 2] + aj * omega[j, 2]
+    vn, vtx, vty, vtz = _relative(nx, ny, nz, v[i, 0], v[i, 1], v[i, 2],
+                                  v[j, 0], v[j, 1], v[j, 2], wx, wy, wz)
+    reff = ri * rj / (ri + rj)
+    meff = mass[i] * mass[j] / (mass[i] + mass[j])
+    return nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj
+
+
+@njit(cache=True)
+def wall_kinematics(x, v, omega, radius, mass, i, p, wn, u):
+    """Kinematics of particle i against the plane through p (3,) with unit normal wn (3,)
+    pointing into the domain, moving with velocity u (3,). Wall = infinite mass and
+    radius: reff = r_i, meff = m_i (LIGGGHTS/LAMMPS). Same return layout as
+    `pair_kinematics` (arm_j = 0)."""
+    dist = ((x[i, 0] - p[0]) * wn[0] + (x[i, 1] - p[1]) * wn[1] + (x[i, 2] - p[2]) * wn[2])
+    ri = radius[i]
+    delta = ri - dist
+    if delta <= 0.0:
+        return 0.0, 0.0, 0.0, delta, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    nx, ny, nz = -wn[0], -wn[1], -wn[2]
+    ai = ri - 0.5 * delta
+    vn, vtx, vty, vtz = _relative(nx, ny, nz, v[i, 0], v[i, 1], v[i, 2], u[0], u[1], u[2],
+                                  ai * omega[i, 0], ai * omega[i, 1], ai * omega[i, 2])
+    return nx, ny, nz, delta, ri, mass[i], vn, vtx, vty, vtz, ai, 0.0
+
+
+@njit(cache=True)
+def project_history(sx, sy, sz, nx, ny, nz):
+    """Project the tangential spring (m) onto the current tangent plane (LIGGGHTS)."""
+    sn = sx * nx + sy * ny + sz * nz
+    return sx - sn * nx, sy - sn * ny, sz - sn * nz
+
+
+@njit(cache=True)
+def coulomb_tangential(kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt):
+    """Tangential spring-dashpot with static/dynamic Coulomb limit (seed 003 eq. 6).
+
+    The spring s [m] integrates vt; trial force kt s + gt vt. Sticking contacts are
+    limited by mus |fn|; once sliding (slip = 1) by mud |fn| until the spring force falls
+    below it. When the limit is hit the spring is rescaled so |kt s| = mu |fn| and the
+    dashpot is dropped (LIGGGHTS). Returns (ftx, fty, ftz, sx, sy, sz, slip, e_t, p_damp,
+    p_fric): force on j [N], new spring, flag, spring energy [J], power dissipated by the
+    dashpot and by Coulomb sliding [W]."""
+    sx += vtx * dt
+    sy += vty * dt
+    sz += vtz * dt
+    fsx, fsy, fsz = kt * sx, kt * sy, kt * sz
+    fs = math.sqrt(fsx * fsx + fsy * fsy + fsz * fsz)
+    mu = mud if slip else mus
+    cap = mu * abs(fn)
+    if fs > cap and fs > 0.0:
+        scale = mud * abs(fn) / fs
+        ftx, fty, ftz = fsx * scale, fsy * scale, fsz * scale
+        sx, sy, sz = sx * scale, sy * scale, sz * scale
+        p_f = ftx * vtx + fty * vty + ftz * vtz
+        p_d = 0.0
+        slip = 1
+    else:
+        ftx, fty, ftz = fsx + gt * vtx, fsy + gt * vty, fsz + gt * vtz
+        p_d = gt * (vtx * vtx + vty * vty + vtz * vtz)
+        p_f = 0.0
+        slip = 0
+    e_t = 0.5 * kt * (sx * sx + sy * sy + sz * sz)
+    return ftx, fty, ftz, sx, sy, sz, slip, e_t, p_d, p_f

@@ -1,0 +1,193 @@
+"""Neighbour search: linked cells + Verlet skin, and contact history carried across rebuilds.
+
+Candidate pairs (i < j) have centre distance < r_i + r_j + skin; the list stays valid until
+some particle moved more than skin/2 since the build (then two particles could have closed
+the skin between them). Building is O(N): particles are binned into cells of size
+2 r_max + skin with a counting sort, each particle scans the 27 (3D) or 9 (2D) cells around
+it, first counting, then filling (both ``prange`` over particles, deterministic order).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = ["NeighbourList", "brute_force_pairs", "build_pairs", "carry_history",
+           "wall_candidates"]
+
+
+@njit(cache=True)
+def _bin(x, lo, h, nc):
+    n = x.shape[0]
+    cell = np.empty(n, np.int64)
+    for i in range(n):
+        cx = min(max(int((x[i, 0] - lo[0]) / h), 0), nc[0] - 1)
+        cy = min(max(int((x[i, 1] - lo[1]) / h), 0), nc[1] - 1)
+        cz = min(max(int((x[i, 2] - lo[2]) / h), 0), nc[2] - 1)
+        cell[i] = (cz * nc[1] + cy) * nc[0] + cx
+    start = np.zeros(nc[0] * nc[1] * nc[2] + 1, np.int64)
+    for i in range(n):
+        start[cell[i] + 1] += 1
+    for c in range(start.shape[0] - 1):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):  # stable: ascending particle index within each cell
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    return cell, start, order
+
+
+@njit(cache=True)
+def _scan(i, x, radius, skin, cell, start, order, nc, out, pos):
+    """Count (out is None-like: pos < 0) or write the partners j > i of particle i."""
+    c = cell[i]
+    cx = c % nc[0]
+    cy = (c // nc[0]) % nc[1]
+    cz = c // (nc[0] * nc[1])
+    cnt = 0
+    for dz in range(-1, 2):
+        z = cz + dz
+        if z < 0 or z >= nc[2]:
+            continue
+        for dy in range(-1, 2):
+            y = cy + dy
+            if y < 0 or y >= nc[1]:
+                continue
+            for dx in range(-1, 2):
+                xx = cx + dx
+                if xx < 0 or xx >= nc[0]:
+                    continue
+                cc = (z * nc[1] + y) * nc[0] + xx
+                for s in range(start[cc], start[cc + 1]):
+                    j = order[s]
+                    if j <= i:
+                        continue
+                    rx = x[j, 0] - x[i, 0]
+                    ry = x[j, 1] - x[i, 1]
+                    rz = x[j, 2] - x[i, 2]
+                    cut = radius[i] + radius[j] + skin
+                    if rx * rx + ry * ry + rz * rz < cut * cut:
+                        if pos >= 0:
+                            out[pos + cnt] = j
+                        cnt += 1
+    return cnt
+
+
+@njit(parallel=True, cache=True)
+def _pairs(x, radius, skin, lo, h, nc):
+    n = x.shape[0]
+    cell, start, order = _bin(x, lo, h, nc)
+    counts = np.zeros(n + 1, np.int64)
+    dummy = np.empty(0, np.int64)
+    for i in prange(n):
+        counts[i + 1] = _scan(i, x, radius, skin, cell, start, order, nc, dummy, -1)
+    for i in range(n):
+        counts[i + 1] += counts[i]
+    pj = np.empty(counts[n], np.int64)
+    pi = np.empty(counts[n], np.int64)
+    for i in prange(n):
+        _scan(i, x, radius, skin, cell, start, order, nc, pj, counts[i])
+        for k in range(counts[i], counts[i + 1]):
+            pi[k] = i
+    return pi, pj
+
+
+def build_pairs(x, radius, skin: float):
+    """Pairs (pi, pj) (m,) int64, i < j, with |x_j - x_i| < r_i + r_j + skin; sorted by
+    (i, j). x (n, 3) [m], radius (n,) [m], skin [m] >= 0."""
+    n = x.shape[0]
+    if n < 2:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    lo = x.min(axis=0)
+    span = x.max(axis=0) - lo
+    h = 2.0 * radius.max() + skin
+    nc = np.maximum(np.floor(span / h).astype(np.int64) + 1, 1)
+    while np.prod(nc) > 8 * n + 64:  # sparse clouds: grow cells, keep memory O(N)
+        h *= 2.0
+        nc = np.maximum(np.floor(span / h).astype(np.int64) + 1, 1)
+    pi, pj = _pairs(x, radius, float(skin), lo, float(h), nc)
+    key = pi * n + pj
+    s = np.argsort(key, kind="stable")
+    return pi[s], pj[s]
+
+
+def brute_force_pairs(x, radius, skin: float):
+    """O(N^2) reference of `build_pairs` (tests)."""
+    d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=2)
+    cut = radius[:, None] + radius[None, :] + skin
+    i, j = np.nonzero(np.triu(d < cut, k=1))
+    return i.astype(np.int64), j.astype(np.int64)
+
+
+def wall_candidates(x, radius, wall_p, wall_n, skin: float):
+    """(particle, wall) pairs (int64, (m,) each) with distance to the plane < r + skin."""
+    if wall_p.shape[0] == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    dist = x @ wall_n.T - (wall_p * wall_n).sum(axis=1)[None, :]  # (n, nw) [m]
+    i, w = np.nonzero(dist < radius[:, None] + skin)
+    return i.astype(np.int64), w.astype(np.int64)
+
+
+def carry_history(old_keys, old_hist, old_slip, new_keys):
+    """History of the new contacts, matched by key (sorted old_keys; searchsorted)."""
+    hist = np.zeros((new_keys.shape[0], 3))
+    slip = np.zeros(new_keys.shape[0], np.int8)
+    if old_keys.shape[0] and new_keys.shape[0]:
+        idx = np.minimum(np.searchsorted(old_keys, new_keys), old_keys.shape[0] - 1)
+        hit = old_keys[idx] == new_keys
+        hist[hit] = old_hist[idx[hit]]
+        slip[hit] = old_slip[idx[hit]]
+    return hist, slip
+
+
+@njit(parallel=True, cache=True)
+def _max_disp2(x, x0):
+    d2 = np.empty(x.shape[0])
+    for i in prange(x.shape[0]):
+        a = x[i, 0] - x0[i, 0]
+        b = x[i, 1] - x0[i, 1]
+        c = x[i, 2] - x0[i, 2]
+        d2[i] = a * a + b * b + c * c
+    return d2.max() if x.shape[0] else 0.0
+
+
+class NeighbourList:
+    """Verlet list of particle pairs and particle-wall pairs with their contact history.
+
+    Attributes: ``pi, pj`` (m,) int64; ``hist`` (m, 3) [m]; ``slip`` (m,) int8; the same
+    for walls as ``wi, ww, whist, wslip``; ``builds`` (number of rebuilds)."""
+
+    def __init__(self, n: int, skin: float):
+        if not skin >= 0:
+            raise ValueError(f"skin must be >= 0 m, got {skin!r}")
+        self.n, self.skin, self.builds = n, float(skin), 0
+        e = np.empty(0, np.int64)
+        self.pi, self.pj, self.wi, self.ww = e, e.copy(), e.copy(), e.copy()
+        self.hist, self.whist = np.zeros((0, 3)), np.zeros((0, 3))
+        self.slip, self.wslip = np.zeros(0, np.int8), np.zeros(0, np.int8)
+        self._x0 = None
+        self._wp0 = None
+
+    def needs_rebuild(self, x, wall_p) -> bool:
+        if self._x0 is None:
+            return True
+        d = np.sqrt(_max_disp2(x, self._x0))
+        if wall_p.shape[0]:
+            d += np.sqrt(((wall_p - self._wp0) ** 2).sum(axis=1).max())
+        return d > 0.5 * self.skin
+
+    def build(self, x, radius, wall_p, wall_n):
+        n = self.n
+        pi, pj = build_pairs(x, radius, self.skin)
+        self.hist, self.slip = carry_history(self.pi * n + self.pj, self.hist, self.slip,
+                                             pi * n + pj)
+        self.pi, self.pj = pi, pj
+        nw = max(wall_p.shape[0], 1)
+        wi, ww = wall_candidates(x, radius, wall_p, wall_n, self.skin)
+        self.whist, self.wslip = carry_history(self.wi * nw + self.ww, self.whist, self.wslip,
+                                               wi * nw + ww)
+        self.wi, self.ww = wi, ww
+        self._x0 = x.copy()
+        self._wp0 = wall_p.copy()
+        self.builds += 1

@@ -1,0 +1,74 @@
+"""Planar walls: fixed or moving with a prescribed velocity; same contact laws as pairs.
+
+A wall contact uses R* = r, m* = m (infinite wall; LIGGGHTS/LAMMPS). Each (particle, wall)
+pair carries its own tangential history; the resultant force on each wall is reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["PlaneWall", "WallSet", "box_walls"]
+
+
+@dataclass(frozen=True)
+class PlaneWall:
+    """Plane through ``point`` (3,) [m] with ``normal`` (3,) pointing into the domain
+    (normalised here), moving with ``velocity`` (3,) [m/s]; ``material`` indexes the
+    simulation's material list."""
+
+    point: tuple
+    normal: tuple
+    velocity: tuple = (0.0, 0.0, 0.0)
+    material: int = 0
+
+    def __post_init__(self):
+        for name in ("point", "normal", "velocity"):
+            a = np.asarray(getattr(self, name), float)
+            if a.shape != (3,) or not np.isfinite(a).all():
+                raise ValueError(f"PlaneWall.{name} must be 3 finite numbers, got {a!r}")
+            object.__setattr__(self, name, tuple(a))
+        nn = np.linalg.norm(self.normal)
+        if not nn > 0:
+            raise ValueError("PlaneWall.normal must be non-zero")
+        object.__setattr__(self, "normal", tuple(np.asarray(self.normal) / nn))
+        if not (isinstance(self.material, int | np.integer) and self.material >= 0):
+            raise ValueError(f"PlaneWall.material must be an int >= 0, got {self.material!r}")
+
+
+class WallSet:
+    """Arrays of the walls in a simulation: ``point, normal, velocity, force`` (nw, 3)
+    [m, -, m/s, N] and ``material`` (nw,) int32. ``point`` advances with ``velocity``;
+    set ``velocity[w]`` from outside to drive wall w; ``force[w]`` is the resultant of
+    the particles on wall w at the last force evaluation."""
+
+    def __init__(self, walls=()):
+        walls = list(walls)
+        self.specs = walls
+        self.point = np.array([w.point for w in walls], float).reshape(-1, 3)
+        self.normal = np.array([w.normal for w in walls], float).reshape(-1, 3)
+        self.velocity = np.array([w.velocity for w in walls], float).reshape(-1, 3)
+        self.material = np.array([w.material for w in walls], np.int32)
+        self.force = np.zeros((len(walls), 3))
+
+    def __len__(self):
+        return self.point.shape[0]
+
+    def advance(self, dt: float):
+        self.point += dt * self.velocity
+
+
+def box_walls(lo, hi, dim: int = 3, top: bool = False, material: int = 0) -> list[PlaneWall]:
+    """Walls of the box [lo, hi] (3,) facing inwards: x and y sides and the bottom z = lo
+    (3D) or x sides and the bottom y = lo (2D); ``top`` adds the upper one."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    up = 2 if dim == 3 else 1
+    walls = []
+    for ax in range(up + 1):
+        e = np.eye(3)[ax]
+        walls.append(PlaneWall(tuple(lo), tuple(e), material=material))
+        if ax != up or top:
+            walls.append(PlaneWall(tuple(hi), tuple(-e), material=material))
+    return walls
