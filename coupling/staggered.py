@@ -142,6 +142,10 @@ class StaggeredCoupling:
             raise ValueError("no FE dofs are prescribed: the window is smaller than the "
                              "handshake depth or the mesh has no nodes inside it")
         problem.bcs.append(fem.dirichletbc(self.g, dofs))
+        # the FE problem is linear and only the Dirichlet values change between iterations:
+        # factorise the Jacobian once and reuse it for every FE solve of the loop
+        problem.petsc_options.setdefault("snes_lag_jacobian", -2)
+        problem.petsc_options.setdefault("snes_lag_jacobian_persists", True)
         problem._snes = None
         self.history: list[dict] = []
         self.timings = {"operators": time.perf_counter() - t0, "particles": 0.0, "fe": 0.0,

@@ -17,7 +17,7 @@ from dolfinx.io import VTXWriter
 
 from granfe.problem import MicropolarProblem
 
-__all__ = ["ContinuumWriter", "scalar_fields", "render_png"]
+__all__ = ["ContinuumWriter", "continuum_grid", "scalar_fields", "render_png"]
 
 
 class ContinuumWriter:
@@ -94,19 +94,13 @@ def scalar_fields(problem: MicropolarProblem) -> dict[str, ufl.core.expr.Expr]:
     return fields
 
 
-def render_png(problem: MicropolarProblem, path: str | Path, field: str = "von_mises",
-               warp: float | None = None, title: str | None = None, clim=None,
-               box: tuple[float, ...] | None = None) -> Path | None:
-    """Render the (optionally warped) body coloured by a named scalar field to a PNG.
+def continuum_grid(problem: MicropolarProblem, field: str = "von_mises"):
+    """The body as a pyvista grid with point data ``u`` (3 components) and ``field``.
 
-    Collective: every rank sends its part to rank 0, which renders with pyvista
-    offscreen. ``warp`` scales the displacement (None: 10% of the body size at the
-    largest displacement; 0: undeformed). ``box = (xmin, xmax, ymin, ymax[, zmin, zmax])``
-    zooms to a region. Returns the path on rank 0.
+    Collective: every rank sends its part to rank 0; returns the grid on rank 0, None elsewhere.
     """
     import pyvista
 
-    pyvista.OFF_SCREEN = True
     fields = scalar_fields(problem)
     if field not in fields:
         raise ValueError(f"unknown field {field!r}; choose one of {sorted(fields)}")
@@ -129,7 +123,26 @@ def render_png(problem: MicropolarProblem, path: str | Path, field: str = "von_m
         g.point_data["u"] = d3
         g.point_data[field] = val
         grids.append(g)
-    grid = grids[0] if len(grids) == 1 else pyvista.merge(grids)
+    return grids[0] if len(grids) == 1 else pyvista.merge(grids)
+
+
+def render_png(problem: MicropolarProblem, path: str | Path, field: str = "von_mises",
+               warp: float | None = None, title: str | None = None, clim=None,
+               box: tuple[float, ...] | None = None, overlay=None) -> Path | None:
+    """Render the (optionally warped) body coloured by a named scalar field to a PNG.
+
+    Collective (see :func:`continuum_grid`); rank 0 renders with pyvista offscreen.
+    ``warp`` scales the displacement (None: 10% of the body size at the largest
+    displacement; 0: undeformed). ``box = (xmin, xmax, ymin, ymax[, zmin, zmax])`` zooms
+    to a region. ``overlay(plotter, warp)`` may add more actors (e.g. particles).
+    Returns the path on rank 0.
+    """
+    import pyvista
+
+    pyvista.OFF_SCREEN = True
+    grid = continuum_grid(problem, field)
+    if grid is None:
+        return None
     size = float(np.max(np.ptp(grid.points, axis=0)))
     umax = float(np.max(np.linalg.norm(grid.point_data["u"], axis=1)))
     if warp is None:
@@ -141,8 +154,10 @@ def render_png(problem: MicropolarProblem, path: str | Path, field: str = "von_m
     plotter = pyvista.Plotter(off_screen=True, window_size=(1200, 900))
     plotter.add_mesh(shown, scalars=field, cmap="viridis", clim=clim, show_edges=False,
                      scalar_bar_args={"title": field, "vertical": True})
+    if overlay is not None:
+        overlay(plotter, warp)
     plotter.add_text(title or f"{field} (displacement x {warp:.3g})", font_size=12)
-    if gdim == 2:
+    if problem.gdim == 2:
         plotter.view_xy()
     else:
         plotter.view_isometric()

@@ -29,13 +29,10 @@ import numpy as np
 from dolfinx import fem, mesh
 from mpi4py import MPI
 
-from coupling.regions import Box, CouplingRegions
-from coupling.staggered import StaggeredCoupling, StaggeredOptions
-from dem.bonded import (BondedAssembly, BondedSubproblem, find_bonds, hexagonal_lattice,
-                        hexagonal_lattice_micropolar)
-from granfe.materials import MicropolarMaterial
+from coupling.punch import coupled_window, fe_block, lattice_block
+from coupling.staggered import StaggeredOptions
+from dem.bonded import BondedAssembly, BondedSubproblem, find_bonds
 from granfe.probe import probe
-from granfe.problem import MicropolarProblem
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
 
@@ -63,51 +60,24 @@ comm = MPI.COMM_WORLD
 
 r, L, H = args.radius, args.width, args.height
 d = 2 * r
-kr = args.kr_factor * args.kt * d**2
-constants = hexagonal_lattice_micropolar(args.kn, args.kt, kr)
-material = MicropolarMaterial(**constants)
-
-
-def punch_and_supports(x):
-    """Indices of grains under the punch (top row, |x - L/2| < punch/2) and on the base."""
-    top = x[:, 1] > x[:, 1].max() - 0.5 * d
-    under = top & (np.abs(x[:, 0] - L / 2) < args.punch / 2)
-    base = x[:, 1] < x[:, 1].min() + 0.5 * d
-    return np.flatnonzero(under), np.flatnonzero(base)
-
+block = lattice_block(L, H, r, args.kn, args.kt, args.kr_factor, args.punch)
+x_all, top_y, centre = block.x, block.top, block.centre
+constants = {k: getattr(block.material, k) for k in ("lam", "mu", "kappa", "gamma")}
 
 # ---- 1. full DEM: every grain ---------------------------------------------------------------
 t0 = time.perf_counter()
-x_all = hexagonal_lattice((0, 0), (L, H), r)
-punch_all, base_all = punch_and_supports(x_all)
-dem_all = BondedAssembly(x_all, r, find_bonds(x_all, r), args.kn, args.kt, kr)
-full = BondedSubproblem(dem_all, np.zeros(0, int), np.concatenate([punch_all, base_all]))
-full.fixed_u[: len(punch_all), 1] = -args.settlement
+dem_all = BondedAssembly(x_all, r, find_bonds(x_all, r), args.kn, args.kt, block.kr)
+full = BondedSubproblem(dem_all, np.zeros(0, int), np.concatenate([block.punch, block.base]))
+full.fixed_u[: len(block.punch), 1] = -args.settlement
 u_dem, theta_dem = full.solve(np.zeros((0, 2)), np.zeros(0))
 t_dem = time.perf_counter() - t0
-top_y = x_all[:, 1].max()
 if comm.rank == 0:
     print(f"full DEM: {len(x_all)} grains, {len(dem_all.bonds)} bonds, {t_dem:.2f} s")
 
-# ---- 2. the FE block: the same lattice region, rough punch on top, fixed base ----------------
-x0, y0 = x_all[:, 0].min() - r, x_all[:, 1].min() - r
-
-
-def fe_problem(prefix):
-    # the continuum covers the grains' centres' hull (a grain-free skin has no stiffness)
-    domain = mesh.create_rectangle(comm, [[x_all[:, 0].min(), x_all[:, 1].min()],
-                                          [x_all[:, 0].max(), top_y]],
-                                   [round(L / args.h), round(H / args.h)])
-    problem = MicropolarProblem(domain, material, degree=(2, 2), prefix=prefix)
-    base = lambda p: np.isclose(p[1], x_all[:, 1].min())  # noqa: E731
-    problem.fix(base, "u")
-    problem.fix(base, "phi")
-    return problem
-
-
+# ---- 2. FE only: the continuum block with the rough punch on its top --------------------------
 t0 = time.perf_counter()
-fe_only = fe_problem("fe_only_")
-under = lambda p: np.isclose(p[1], top_y) & (np.abs(p[0] - L / 2) < args.punch / 2)  # noqa: E731
+fe_only = fe_block(comm, block, args.h, prefix="fe_only_")
+under = lambda p: np.isclose(p[1], top_y) & (np.abs(p[0] - centre) < args.punch / 2)  # noqa: E731
 fe_only.fix(under, "u", (0.0, -args.settlement))
 fe_only.fix(under, "phi", 0.0)
 fe_only.solve()
@@ -124,28 +94,18 @@ def fe_at(problem, pts):
 # errors are measured on the grains near the punch common to every window (within half the
 # smallest window) and on all free grains of each window
 a_min = min(args.windows)
-near = np.flatnonzero((np.abs(x_all[:, 0] - L / 2 - x0) < a_min / 2) & (x_all[:, 1] > top_y - a_min / 2))
+near = np.flatnonzero((np.abs(x_all[:, 0] - centre) < a_min / 2) & (x_all[:, 1] > top_y - a_min / 2))
 runs = []
 for a in args.windows:
     t0 = time.perf_counter()
-    # the box reaches above the free surface so that the overlap lies only along its sides and base
-    window = Box((L / 2 - a + x0, top_y - a), (L / 2 + a + x0, top_y + a))
-    regions = CouplingRegions(window, ghost_width=args.ghost_width * d, handshake=args.handshake * args.h)
-    kinds = regions.particle_kinds(x_all)
-    keep = np.flatnonzero(kinds >= 0)
-    x, kinds = x_all[keep], kinds[keep]
-    punch, _ = punch_and_supports(x_all)
-    punch_local = np.flatnonzero(np.isin(keep, punch))
-    kinds[punch_local] = 0  # the punch grains are fixed (not ghosts): free kind for the FE side
-    assembly = BondedAssembly(x, r, find_bonds(x, r), args.kn, args.kt, kr)
-    particles = BondedSubproblem(assembly, np.flatnonzero(kinds == 1), punch_local)
-    particles.fixed_u[:, 1] = -args.settlement
-    problem = fe_problem(f"coupled{int(a * 1e4)}_")
-    coupling = StaggeredCoupling(problem, x, kinds, particles, regions,
-                                 StaggeredOptions(tol=1e-8, max_iterations=300))
-    its = coupling.solve()
+    problem = fe_block(comm, block, args.h, prefix=f"coupled{int(a * 1e4)}_")
+    run = coupled_window(block, problem, a, a, args.ghost_width * d, args.handshake * args.h,
+                         StaggeredOptions(tol=1e-8, max_iterations=300))
+    its = run.press(args.settlement)
+    coupling, keep = run.coupling, run.keep
+    x = x_all[keep]
     t_c = time.perf_counter() - t0
-    free = np.flatnonzero(kinds == 0)
+    free = np.flatnonzero(coupling.kinds == 0)
     ref = u_dem[keep[free]]
     err = np.linalg.norm(coupling.u[free] - ref) / np.linalg.norm(ref)
     err_fe = np.linalg.norm(fe_at(fe_only, x[free]) - ref) / np.linalg.norm(ref)
@@ -155,6 +115,7 @@ for a in args.windows:
     err_fe_near = np.linalg.norm(fe_at(fe_only, x_all[near]) - ref_near) / np.linalg.norm(ref_near)
     runs.append({"window_half_width": a, "grains": int(len(x)), "free_grains": int(len(free)),
                  "iterations": its, "time_s": t_c, "timings": coupling.timings,
+                 "punch_force": run.punch_force(),
                  "error_vs_full_dem": float(err_near), "fe_only_error_same_grains": float(err_fe_near),
                  "error_vs_full_dem_all_window_grains": float(err),
                  "fe_only_error_all_window_grains": float(err_fe),
@@ -167,10 +128,11 @@ for a in args.windows:
 
 # ---- results and figures ------------------------------------------------------------------------
 results = {
-    "inputs": vars(args) | {"out": str(args.out), "kr": kr, "short": SHORT, "ranks": comm.size},
+    "inputs": vars(args) | {"out": str(args.out), "kr": block.kr, "short": SHORT, "ranks": comm.size},
     "micropolar_constants": constants,
     "full_dem": {"grains": int(len(x_all)), "bonds": int(len(dem_all.bonds)), "time_s": t_dem,
-                 "punch_grain_settlement": args.settlement},
+                 "punch_grain_settlement": args.settlement,
+                 "punch_force": float(-(dem_all.K @ full.q).reshape(len(x_all), 3)[block.punch, 1].sum())},
     "fe_only": {"dofs": int(fe_only.V.dofmap.index_map.size_global), "time_s": t_fe},
     "coupled": runs,
 }

@@ -1,0 +1,86 @@
+"""The granfe command: check, run (outputs, checkpoint), restart, failure with last good state."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+GRANFE = Path(sys.executable).parent / "granfe"
+SMALL = ["--set", "geometry.width=0.2", "--set", "geometry.height=0.1", "--set", "geometry.element_size=0.02",
+         "--set", "particles.radius=0.004", "--set", "window.half_width=0.06", "--set", "window.depth=0.05",
+         "--set", "penetrator.steps=2", "--set", "output.png=false"]
+
+
+def granfe(*args):
+    cmd = [str(GRANFE)] if GRANFE.exists() else [sys.executable, "-m", "coupling.cli"]
+    return subprocess.run(cmd + list(args), cwd=ROOT, capture_output=True, text=True, timeout=600)
+
+
+def test_check_summarises():
+    proc = granfe("check", "scenes/punch_2d.toml")
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads(proc.stdout)
+    assert info["valid"] and info["fe_dofs"] > 0 and info["grains_in_window_and_ghost_band"] > 0
+
+
+def test_check_names_bad_key():
+    proc = granfe("check", "scenes/punch_2d.toml", "--set", "window.widht=0.1")
+    assert proc.returncode == 2
+    assert "unknown key window.widht" in proc.stderr
+
+
+@pytest.mark.slow
+def test_run_then_restart_reproduces(tmp_path):
+    out = tmp_path / "run"
+    proc = granfe("run", "scenes/punch_2d.toml", "--out", str(out), "--no-progress", *SMALL)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    history = json.loads((out / "history.json").read_text())["steps"]
+    assert [h["step"] for h in history] == [1, 2]
+    # linear problem: force proportional to settlement
+    assert abs(history[1]["punch_force"] / history[0]["punch_force"] - 2.0) < 1e-6
+    assert (out / "particles.pvd").exists() and list((out / "particles").glob("*.vtu"))
+    assert list(out.glob("continuum_*_fields.bp"))
+    # rewind the checkpoint to step 1 and restart: step 2 is recomputed from the saved state
+    state = out / "checkpoint" / "state.json"
+    json.loads(state.read_text())
+    state.write_text(json.dumps({"step": 1}))
+    history_file = out / "history.json"
+    data = json.loads(history_file.read_text())
+    data["steps"] = data["steps"][:1]
+    history_file.write_text(json.dumps(data))
+    proc = granfe("restart", str(out), "--no-progress")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    again = json.loads(history_file.read_text())["steps"]
+    assert [h["step"] for h in again] == [1, 2]
+    assert abs(again[1]["punch_force"] - history[1]["punch_force"]) < 1e-6 * abs(history[1]["punch_force"])
+
+
+@pytest.mark.slow
+def test_failing_step_stops_with_last_good_state(tmp_path):
+    out = tmp_path / "fail"
+    proc = granfe("run", "scenes/punch_2d.toml", "--out", str(out), "--no-progress", *SMALL,
+                  "--set", "solver.max_iterations=2", "--set", "solver.cutbacks=1", "--set", "solver.tol=1e-14")
+    assert proc.returncode == 1
+    assert "failed after 1 cut-backs" in proc.stderr and "Last good state" in proc.stderr
+    assert list((out / "checkpoint").glob("continuum_rank0_of1.npz"))
+
+
+@pytest.mark.slow
+def test_run_two_ranks_equals_serial(tmp_path):
+    mpiexec = Path(sys.executable).parent / "mpiexec"
+    if not mpiexec.exists():
+        pytest.skip("no mpiexec in the environment")
+    forces = []
+    for ranks in (1, 2):
+        out = tmp_path / f"r{ranks}"
+        cmd = [str(mpiexec), "-n", str(ranks), sys.executable, "-m", "coupling.cli", "run",
+               "scenes/punch_2d.toml", "--out", str(out), "--no-progress", *SMALL,
+               "--set", "solver.tol=1e-12", "--set", "output.fields=false", "--set", "output.particles=false"]
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600,
+                              env={**__import__("os").environ, "NUMBA_NUM_THREADS": "1"})
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        forces.append([h["punch_force"] for h in json.loads((out / "history.json").read_text())["steps"]])
+    assert abs(forces[0][-1] - forces[1][-1]) < 1e-10 * abs(forces[0][-1])

@@ -1,0 +1,52 @@
+"""Scene files: defaults, overrides, and errors that name the key."""
+
+import pytest
+
+from coupling.scene import Scene, SceneError, load_scene, parse_overrides
+
+
+def write(tmp_path, text):
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    return p
+
+
+def test_defaults_and_round_trip(tmp_path):
+    scene = load_scene()
+    assert isinstance(scene, Scene)
+    again = load_scene(write(tmp_path, scene.to_toml()))
+    assert again == scene
+
+
+def test_overrides_layer_on_top(tmp_path):
+    p = write(tmp_path, "[window]\nhalf_width = 0.07\n")
+    scene = load_scene(p, parse_overrides(["window.depth=0.05", "penetrator.steps=3", "scene.name=abc"]))
+    assert scene.window.half_width == 0.07 and scene.window.depth == 0.05
+    assert scene.penetrator.steps == 3 and scene.scene.name == "abc"
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[windw]\nhalf_width = 0.1\n", r"unknown section \[windw\]"),
+    ("[window]\nhalfwidth = 0.1\n", r"unknown key window.halfwidth"),
+    ("[window]\nhalf_width = 'wide'\n", r"window.half_width must be a float"),
+    ("[penetrator]\nsteps = 2.5\n", r"penetrator.steps must be an integer"),
+    ("[particles]\nradius = -0.001\n", r"particles.radius must be > 0"),
+    ("[window]\nhalf_width = 0.5\n", r"not covered by the continuum block"),
+    ("[particles]\nkt = 2e8\n", r"particles.kt .* must be below particles.kn"),
+    ("[particles]\nradius = 0.02\n", r"particles.radius = 0.02: grains larger than"),
+    ("[window]\nhalf_width = nan\n", r"window.half_width must be > 0"),
+    ("[window\nhalf_width = 1\n", r"not valid TOML"),
+])
+def test_bad_scenes_name_the_key(tmp_path, text, match):
+    with pytest.raises(SceneError, match=match):
+        load_scene(write(tmp_path, text))
+
+
+def test_bad_override_syntax():
+    with pytest.raises(SceneError, match="section.key=value"):
+        parse_overrides(["half_width=3"])
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(SceneError, match="does not exist"):
+        load_scene(tmp_path / "nope.toml")
