@@ -98,34 +98,80 @@ class GeneralizedAlpha:
         u, phi = ufl.split(w)
         self._kinetic = fem.form(kinetic_energy_density(vu, vphi, c) * problem.dx)
         self._elastic = fem.form(strain_energy_density(strain(u, phi), curvature(phi), c) * problem.dx)
+        self._weighted: dict = {}
+
+    def initialize_acceleration(self) -> None:
+        """Consistent initial acceleration ``M a_0 = f_ext - f_int(w_0)`` (zero on Dirichlet
+        dofs, i.e. boundary values constant at the start)."""
+        from dolfinx.fem.petsc import LinearProblem
+
+        problem, c = self.problem, self.problem.constants
+        V = problem.V
+        a_u, a_phi = ufl.TrialFunctions(V)
+        du, dphi = ufl.TestFunctions(V)
+        u, phi = ufl.split(problem.w)
+        lhs = inertia_work(a_u, a_phi, du, dphi, c) * problem.dx
+        rhs = -internal_work(u, phi, du, dphi, c) * problem.dx
+        ext = problem.external_work(du, dphi)
+        if ext != 0:
+            rhs = rhs + ext
+        zero = fem.Function(V)
+        bcs = [fem.dirichletbc(zero, bc.dof_indices()[0]) for bc in problem.bcs]
+        solver = LinearProblem(lhs, rhs, bcs=bcs, u=self.a, petsc_options_prefix=f"granfe_a0_{id(self)}_",
+                               petsc_options={"ksp_type": "preonly", "pc_type": "lu",
+                                              "pc_factor_mat_solver_type": "mumps"})
+        solver.solve()
 
     def load_time(self) -> float:
         """The time at which loads of the next step are evaluated, ``t_{n+1-alpha_f}``."""
         return self.t + (1 - self.params.alpha_f) * self.dt.value
 
-    def step(self) -> int:
-        """Advance one step; return SNES iterations (raises with the PETSc reason on failure)."""
-        p, dt = self.params, float(self.dt.value)
+    def predict(self) -> None:
+        """Start a step: keep the old state, put a constant-acceleration predictor in ``w``."""
+        dt = float(self.dt.value)
         w = self.problem.w
         self.w_old.x.array[:] = w.x.array
-        # predictor: constant acceleration (exact for the linear problem after one Newton step)
         w.x.array[:] += dt * self.v.x.array + 0.5 * dt**2 * self.a.x.array
+
+    def solve(self) -> int:
+        """Solve the current step for ``w`` (may be repeated, e.g. by a staggered coupling)."""
         self._snes.solve()
         try:
-            its = self.problem.checked(self._snes, f"dynamic step at t = {self.t + dt:.6g} s")
+            return self.problem.checked(self._snes, f"dynamic step at t = {self.t + float(self.dt.value):.6g} s")
         except Exception:
-            w.x.array[:] = self.w_old.x.array
+            self.problem.w.x.array[:] = self.w_old.x.array
             raise
-        wn, wo, v, a = w.x.array, self.w_old.x.array, self.v.x.array, self.a.x.array
+
+    def finish(self) -> None:
+        """Accept ``w`` as the new state: update velocity, acceleration and time (Newmark)."""
+        p, dt = self.params, float(self.dt.value)
+        wn, wo, v, a = self.problem.w.x.array, self.w_old.x.array, self.v.x.array, self.a.x.array
         a_new = (wn - wo - dt * v) / (p.beta * dt**2) - (1 - 2 * p.beta) / (2 * p.beta) * a
         v[:] = v + dt * ((1 - p.gamma) * a + p.gamma * a_new)
         a[:] = a_new
         self.t += dt
+
+    def step(self) -> int:
+        """Advance one step; return SNES iterations (raises with the PETSc reason on failure)."""
+        self.predict()
+        its = self.solve()
+        self.finish()
         return its
 
-    def energies(self) -> tuple[float, float]:
-        """(kinetic, elastic) energy of the current state [J] (per unit thickness in 2D)."""
+    def energies(self, weight=None) -> tuple[float, float]:
+        """(kinetic, elastic) energy [J] (per unit thickness in 2D), optionally weighted by a
+        UFL expression ``weight`` (e.g. an indicator of a region)."""
         comm = self.problem.domain.comm
-        k = comm.allreduce(fem.assemble_scalar(self._kinetic), MPI.SUM)
-        e = comm.allreduce(fem.assemble_scalar(self._elastic), MPI.SUM)
-        return k, e
+        if weight is None:
+            forms = (self._kinetic, self._elastic)
+        else:
+            key = id(weight)
+            if key not in self._weighted:
+                c, dx = self.problem.constants, self.problem.dx
+                vu, vphi = ufl.split(self.v)
+                u, phi = ufl.split(self.problem.w)
+                self._weighted[key] = (
+                    fem.form(weight * kinetic_energy_density(vu, vphi, c) * dx),
+                    fem.form(weight * strain_energy_density(strain(u, phi), curvature(phi), c) * dx))
+            forms = self._weighted[key]
+        return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in forms)

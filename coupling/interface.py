@@ -1,0 +1,152 @@
+"""The DE x FE interface: ghost motion from the FE fields, prescribed FE dofs from the
+particles, and Aitken relaxation of the exchanged values (used by the static and the
+dynamic staggered solvers)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import dolfinx_solver  # noqa: F401
+
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+
+from coupling.locate import owner_ranks
+from coupling.operators import FieldBasis, NodalProjection
+from coupling.regions import CouplingRegions
+
+__all__ = ["CouplingInterface", "Aitken"]
+
+
+@dataclass
+class _Field:
+    sub: int
+    ghost: FieldBasis
+    free: FieldBasis
+    projection: NodalProjection
+    prescribed: np.ndarray  # owned local parent dofs
+
+
+class CouplingInterface:
+    """Operators between a micropolar FE problem and a set of particles.
+
+    Args:
+        problem: a :class:`granfe.problem.MicropolarProblem`; a Dirichlet condition on the
+            prescribed dofs (values in :attr:`g`) is added to it.
+        x: centroids (n, 3) of every coupled particle, identical on all ranks.
+        kinds: (n,) 0 free, 1 ghost.
+        regions: gives the prescribed FE nodes.
+        regularization: of the nodal projection.
+    """
+
+    def __init__(self, problem, x, kinds, regions: CouplingRegions, regularization: float = 0.0):
+        self.problem = problem
+        V, domain = problem.V, problem.domain
+        self.comm = comm = domain.comm
+        self.gdim = gdim = domain.geometry.dim
+        self.x = np.asarray(x, dtype=float)
+        self.kinds = np.asarray(kinds)
+        if self.x.ndim != 2 or self.x.shape[1] != 3 or len(self.kinds) != len(self.x):
+            raise ValueError(f"x must be (n, 3) and kinds (n,), got {self.x.shape} and {self.kinds.shape}")
+        if np.any((self.kinds != 0) & (self.kinds != 1)):
+            raise ValueError("kinds must be 0 (free) or 1 (ghost); drop particles outside the "
+                             "coupled region before coupling")
+        t0 = time.perf_counter()
+        owners = owner_ranks(domain, self.x[:, :gdim])
+        mine = owners == comm.rank
+        self.ghost_index = np.flatnonzero(self.kinds == 1)
+        self.free_index = np.flatnonzero(self.kinds == 0)
+        self._ghost_mine = np.flatnonzero(mine[self.ghost_index])  # positions within ghost list
+        self._free_mine = self.free_index[mine[self.free_index]]    # particle indices
+        ghost_pts = self.x[self.ghost_index[self._ghost_mine], :gdim]
+        free_pts = self.x[self._free_mine, :gdim]
+        self.g = fem.Function(V, name="prescribed_values")
+        bc_dofs, self.fields = [], []
+        for sub in (0, 1):
+            ghost = FieldBasis.build(V, ghost_pts, sub=sub)
+            free = FieldBasis.build(V, free_pts, sub=sub)
+            Vc, parent = V.sub(sub).collapse()
+            parent = np.asarray(parent[0] if isinstance(parent, list) else parent, dtype=np.int64)
+            bs = Vc.dofmap.bs
+            coords = np.repeat(Vc.tabulate_dof_coordinates(), bs, axis=0)[: parent.size]
+            local = parent[regions.prescribed_nodes(coords[:, :gdim])]
+            owned = local[local < V.dofmap.index_map.size_local * V.dofmap.index_map_bs]
+            projection = NodalProjection(free, owned, regularization)
+            self.fields.append(_Field(sub, ghost, free, projection, np.sort(owned)))
+            bc_dofs.append(local)
+        self.n_prescribed = comm.allreduce(sum(f.prescribed.size for f in self.fields))
+        if self.n_prescribed == 0:
+            raise ValueError("no FE dofs are prescribed: the window is smaller than the "
+                             "handshake depth or the mesh has no nodes inside it")
+        dofs = np.unique(np.concatenate(bc_dofs)).astype(np.int32)
+        problem.bcs.append(fem.dirichletbc(self.g, dofs))
+        # the FE problem is linear and only the Dirichlet values change between solves:
+        # factorise the Jacobian once and reuse it
+        problem.petsc_options.setdefault("snes_lag_jacobian", -2)
+        problem.petsc_options.setdefault("snes_lag_jacobian_persists", True)
+        problem._snes = None
+        self.setup_time = time.perf_counter() - t0
+
+    def norm(self, v: np.ndarray) -> float:
+        return float(np.sqrt(self.comm.allreduce(float(v @ v), MPI.SUM)))
+
+    def dot(self, a: np.ndarray, b: np.ndarray) -> float:
+        return float(self.comm.allreduce(float(a @ b), MPI.SUM))
+
+    def ghost_motion(self, w: fem.Function | None = None):
+        """(u_ghost (n_g, dim), theta_ghost (n_g,) or (n_g, 3)) on every rank: ``Q^ = N D``."""
+        w = self.problem.w if w is None else w
+        out = []
+        for f in self.fields:
+            local = f.ghost.interpolate(w)
+            parts = self.comm.allgather((self._ghost_mine, local))
+            values = np.zeros((len(self.ghost_index), f.ghost.value_size))
+            for idx, val in parts:
+                values[idx] = val.reshape(len(idx), f.ghost.value_size)
+            out.append(values)
+        u, theta = out
+        return u, (theta[:, 0] if self.gdim == 2 else theta)
+
+    def project(self, u: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Prescribed-dof values (this rank's, u then phi) from all particles' motion."""
+        w = self.problem.w
+        th = np.reshape(theta, (len(theta), -1))
+        return np.concatenate([f.projection.project(q[self._free_mine], w)
+                               for f, q in zip(self.fields, (u[:, : self.gdim], th))])
+
+    def prescribed_values(self) -> np.ndarray:
+        return np.concatenate([self.g.x.array[f.prescribed] for f in self.fields])
+
+    def set_prescribed(self, values: np.ndarray) -> None:
+        start = 0
+        for f in self.fields:
+            self.g.x.array[f.prescribed] = values[start: start + f.prescribed.size]
+            start += f.prescribed.size
+        self.g.x.scatter_forward()
+
+
+class Aitken:
+    """Aitken's dynamic relaxation of a fixed point ``x <- x + omega (T(x) - x)``."""
+
+    def __init__(self, interface: CouplingInterface, omega: float = 1.0, enabled: bool = True,
+                 bounds=(0.05, 2.0)):
+        self.interface, self.omega0, self.enabled, self.bounds = interface, omega, enabled, bounds
+        self.reset()
+
+    def reset(self):
+        self.omega, self.r_prev = self.omega0, None
+
+    def update(self, current: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, float]:
+        """New iterate and the relative residual ``|T(x) - x| / |T(x)|``."""
+        r = target - current
+        if self.enabled and self.r_prev is not None:
+            dr = r - self.r_prev
+            denom = self.interface.dot(dr, dr)
+            if denom > 0:
+                self.omega = float(np.clip(-self.omega * self.interface.dot(self.r_prev, dr) / denom,
+                                           *self.bounds))
+        self.r_prev = r
+        scale = max(self.interface.norm(target), 1e-300)
+        return current + self.omega * r, self.interface.norm(r) / scale
