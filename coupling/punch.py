@@ -36,7 +36,13 @@ class PunchBlock:
 
     @property
     def top(self) -> float:
+        """Height of the top row of grain centres [m]."""
         return float(self.x[:, 1].max())
+
+    @property
+    def surface(self) -> float:
+        """Height of the continuum's free surface: half a row spacing above the top row [m]."""
+        return self.top + np.sqrt(3) / 2 * self.radius
 
     @property
     def centre(self) -> float:
@@ -58,9 +64,15 @@ def lattice_block(width, height, radius, kn, kt, kr_factor, punch_width) -> Punc
 
 def fe_block(comm, block: PunchBlock, element_size: float, degree=(2, 2), prefix="block_",
              checkpoint_dir=None) -> MicropolarProblem:
-    """Micropolar FE block over the grains' centres, base clamped (u = 0, phi = 0)."""
+    """Micropolar FE block carrying the grains' cells, base clamped (u = 0, phi = 0).
+
+    The block reaches half a grain spacing beyond the outer grain centres (r in x,
+    sqrt(3)/4 d above the top row) so that its mass and stiffness are the lattice's; its
+    base is the row of clamped grains' centres."""
     x = block.x
-    lo, hi = x[:, :2].min(axis=0), x[:, :2].max(axis=0)
+    d = 2 * block.radius
+    lo = x[:, :2].min(axis=0) - np.array([block.radius, 0.0])
+    hi = x[:, :2].max(axis=0) + np.array([block.radius, np.sqrt(3) / 4 * d])
     n = np.maximum(np.round((hi - lo) / element_size).astype(int), 1)
     domain = mesh.create_rectangle(comm, [lo, hi], n)
     problem = MicropolarProblem(domain, block.material, degree=tuple(degree), prefix=prefix,

@@ -102,6 +102,13 @@ class CouplingRegions:
         kind[(d > 0.0) & (d <= self.ghost_width)] = 1
         return kind
 
-    def prescribed_nodes(self, x: np.ndarray) -> np.ndarray:
-        """(n,) bool: FE nodes at x (n, d) whose dofs are projected from particles (B^h~)."""
-        return self.window.signed_distance(x) <= -self.handshake
+    def prescribed_nodes(self, x: np.ndarray, tolerance: float = 1e-9) -> np.ndarray:
+        """(n,) bool: FE nodes at x (n, d) whose dofs are projected from particles (B^h~).
+
+        Nodes within ``tolerance`` (relative to the handshake depth, or absolute 1e-12 m when
+        it is 0) of the boundary count as inside: dof coordinates computed on different
+        partitions differ in the last bits, and a node line on the boundary must be decided
+        the same way on every rank count.
+        """
+        slack = tolerance * max(self.handshake, 1e-3)
+        return self.window.signed_distance(x) <= -self.handshake + slack

@@ -77,7 +77,7 @@ if comm.rank == 0:
 # ---- 2. FE only: the continuum block with the rough punch on its top --------------------------
 t0 = time.perf_counter()
 fe_only = fe_block(comm, block, args.h, prefix="fe_only_")
-under = lambda p: np.isclose(p[1], top_y) & (np.abs(p[0] - centre) < args.punch / 2)  # noqa: E731
+under = lambda p: np.isclose(p[1], block.surface) & (np.abs(p[0] - centre) < args.punch / 2)  # noqa: E731
 fe_only.fix(under, "u", (0.0, -args.settlement))
 fe_only.fix(under, "phi", 0.0)
 fe_only.solve()

@@ -71,8 +71,10 @@ c_p = np.sqrt((material.lam + 2 * material.mu + material.kappa) / rho_c)
 G = material.mu + material.kappa / 2
 c_bar = np.sqrt(4 * G * (material.lam + G) / (material.lam + 2 * G) / rho_c)
 grains = hexagonal_lattice((0, 0), (args.length, args.height), r)
-y0, y1 = grains[:, 1].min(), grains[:, 1].max()
-x1 = grains[:, 0].max()
+# the continuum carries the grains' cells: half a row spacing beyond the outer centres, so
+# that mass and stiffness per unit length of the strip are the lattice's
+y0, y1 = grains[:, 1].min() - np.sqrt(3) / 4 * d, grains[:, 1].max() + np.sqrt(3) / 4 * d
+x1 = grains[:, 0].max() + r
 xc, w, A = args.pulse_width + 0.02, args.pulse_width, args.amplitude
 t_end = (args.window_start + 1.5 * w - xc) / c_bar   # the pulse has entered the grains
 
