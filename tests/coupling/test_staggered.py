@@ -93,3 +93,28 @@ def test_patch_serial_equals_parallel():
         results.append((its, coupling.u.copy()))
     assert results[0][0] == results[1][0]
     assert np.allclose(results[0][1], results[1][1], rtol=0, atol=1e-12 * np.abs(results[1][1]).max())
+
+
+def test_patch_3d_cubic_lattice():
+    """3D: a bonded simple-cubic lattice inside a micropolar box; a symmetric uniform strain
+    on the outer FE boundary is reproduced by every sphere through the overlap."""
+    r = 0.05
+    g = np.arange(0.3, 1.71, 2 * r)
+    x = np.array(np.meshgrid(g, g, g, indexing="ij")).reshape(3, -1).T
+    regions = CouplingRegions(Box((0.6, 0.6, 0.6), (1.4, 1.4, 1.4)), ghost_width=0.21, handshake=0.25)
+    kinds = regions.particle_kinds(x)
+    x, kinds = x[kinds >= 0], kinds[kinds >= 0]
+    assembly = BondedAssembly(x, r, find_bonds(x, r), kn=1e6, kt=4e5, kr=1e3, dim=3)
+    particles = BondedSubproblem(assembly, np.flatnonzero(kinds == 1))
+    G3 = np.array([[1.0, 0.2, -0.1], [0.2, -0.4, 0.3], [-0.1, 0.3, 0.6]]) * 1e-3
+    domain = mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [2, 2, 2]], [6, 6, 6])
+    problem = MicropolarProblem(domain, MicropolarMaterial(lam=1e6, mu=1e6, kappa=1e5, gamma=1e3),
+                                degree=(1, 1), prefix="patch3d_")
+    boundary = lambda p: np.full(p.shape[1], True)  # noqa: E731
+    problem.fix(boundary, "u", lambda p: G3 @ p)
+    problem.fix(boundary, "phi", lambda p: np.zeros((3, p.shape[1])))
+    coupling = StaggeredCoupling(problem, x, kinds, particles, regions, StaggeredOptions(tol=1e-11))
+    coupling.solve()
+    u_exact = x @ G3.T
+    assert np.abs(coupling.u - u_exact).max() < 1e-10 * np.abs(u_exact).max()
+    assert np.abs(coupling.theta).max() < 1e-10 * np.abs(u_exact).max() / r
