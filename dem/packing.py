@@ -47,8 +47,8 @@ def solid_fraction(radius, lo, hi) -> float:
     return float(_particle_measure(np.asarray(radius, float), dim).sum() / np.prod(size))
 
 
-def _lattice_sites(kind: str, dim: int) -> np.ndarray:
-    """Sites of one unit cell in units of the cell edge (rows), and the cell aspect."""
+def _lattice_sites(kind: str, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sites (k, dim) of one unit cell in units of its edges, and the edge ratios (dim,)."""
     if kind == "sc":
         return np.zeros((1, dim)), np.ones(dim)
     if kind == "hex" and dim == 2:
