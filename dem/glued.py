@@ -99,31 +99,43 @@ class GluedString:
         fth = law.B * law.k_mindlin * a * R**2 * th + R * fy
         return np.column_stack([fx, fy, fth])
 
-    def f_int(self, q: np.ndarray) -> np.ndarray:
-        """Assembled internal force and moment vector F^INT(q) (3 n,) (eq. 62, 67)."""
-        f = self.contact_forces(q)
+    def f_int(self, q: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Assembled internal force and moment vector F^INT(q) (3 n,) (eq. 62, 67).
+
+        ``weights`` (n - 1, 3): optional row weights of (f_x, f_y, f_th) per contact.
+        """
+        f = self.contact_forces(q) if weights is None else self.contact_forces(q) * weights
         out = np.zeros((self.n, 3))
         out[:-1] += f
         out[1:] += f * np.array([-1.0, -1.0, 1.0])
         return out.ravel()
 
-    def tangent(self, q: np.ndarray) -> np.ndarray:
-        """Consistent tangent dF^INT/dq (3 n, 3 n), dense (eq. 63-65)."""
+    def contact_tangents(self, q: np.ndarray) -> np.ndarray:
+        """(n - 1, 6, 6) consistent tangents d f^INT,e / d q^e per contact (eq. 63-65)."""
         law, R, R0 = self.law, self.law.radius, self.law.radius / 2
         dn, adn, a, dt, th = _kinematics(q, R, R0)
         ddn = np.array([1.0, 0, 0, -1.0, 0, 0])
         ddt = np.array([0, 1.0, R, 0, -1.0, R])
         dth = np.array([0, 0, 1.0, 0, 0, 1.0])
         # d a / d delta_n = R0 sign / (2 a); zero at a = 0 where the Hertz law has no tangent
-        da = np.divide(R0 * np.sign(dn), 2 * a, out=np.zeros_like(a), where=a > 0)
-        K = np.zeros((self.n_dofs, self.n_dofs))
+        da = np.divide(R0 * np.sign(dn), 2 * a, out=np.zeros_like(a), where=a > 0)[:, None]
+        gx = 1.5 * law.k_hertz * np.sqrt(adn)[:, None] * ddn
+        gy = law.k_mindlin * (da * dt[:, None] * ddn + a[:, None] * ddt)
+        gth = law.B * law.k_mindlin * R**2 * (da * th[:, None] * ddn + a[:, None] * dth) + R * gy
         sign = np.array([1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+        return sign[None, :, None] * np.stack([gx, gy, gth, gx, gy, gth], axis=1)
+
+    def tangent(self, q: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Consistent tangent dF^INT/dq (3 n, 3 n), dense (eq. 63-65).
+
+        ``weights`` (n - 1, 3): optional row weights of (f_x, f_y, f_th) per contact.
+        """
+        ke = self.contact_tangents(q)
+        if weights is not None:
+            ke = ke * np.tile(weights, (1, 2))[:, :, None]
+        K = np.zeros((self.n_dofs, self.n_dofs))
         for c in range(self.n - 1):
-            gx = 1.5 * law.k_hertz * np.sqrt(adn[c]) * ddn
-            gy = law.k_mindlin * (da[c] * dt[c] * ddn + a[c] * ddt)
-            gth = law.B * law.k_mindlin * R**2 * (da[c] * th[c] * ddn + a[c] * dth) + R * gy
-            ke = sign[:, None] * np.vstack([gx, gy, gth, gx, gy, gth])
-            K[3 * c:3 * c + 6, 3 * c:3 * c + 6] += ke
+            K[3 * c:3 * c + 6, 3 * c:3 * c + 6] += ke[c]
         return K
 
     def axial_predictor(self, force: float, clamp: str = "right") -> np.ndarray:

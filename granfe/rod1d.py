@@ -127,6 +127,11 @@ class Rod1D:
         self._A, self._I, self._Q = c(area), c(inertia), c(first_moment)
         self._gam, self._kap, self._mu = c(m.gamma), c(m.kappa), c(m.mu)
         self.g = c(np.asarray(scaling, dtype=float))
+        # per-cell row weights of the u, v, theta equations (energy factoring, seed eq. 119)
+        self.W = fem.functionspace(self.mesh, ("DG", 0))
+        self.cell_weights = [fem.Function(self.W, name=f"w_{f}") for f in ("u", "v", "theta")]
+        for wk in self.cell_weights:
+            wk.x.array[:] = 1.0
         self._w = fem.Function(self.V)
         self.a = fem.form(ufl.derivative(self.residual(self._w), self._w))
         self.field_dofs = self._field_dofs()
@@ -137,7 +142,8 @@ class Rod1D:
         du, dv, dth = ufl.TestFunctions(self.V)
         d = lambda f: f.dx(0)  # noqa: E731
         C, GA, A, I, Q = self._C, self._GA, self._A, self._I, self._Q
-        gu, gv, gth = self.g[0], self.g[1], self.g[2]
+        wu, wv, wth = self.cell_weights
+        gu, gv, gth = self.g[0] * wu, self.g[1] * wv, self.g[2] * wth
         gamma_shear = d(v) - th
         r_u = d(du) * C * (A * d(u) - Q * d(th))
         r_v = d(dv) * GA * gamma_shear
@@ -214,6 +220,15 @@ class Rod1D:
         K = sp.csr_matrix((data, indices, indptr), shape=A.getSize())
         A.destroy()
         return K
+
+    def set_cell_weights(self, field: str, weight) -> None:
+        """Row weight of equation ``field`` ("u", "v", "theta") per cell: a callable of the
+        cell midpoint x [m] -> weight, or a number. Clears the cached K."""
+        k = ("u", "v", "theta").index(field)
+        xm = self.W.tabulate_dof_coordinates()[:, 0]
+        w = weight(xm) if callable(weight) else np.full(xm.size, float(weight))
+        self.cell_weights[k].x.array[:] = w
+        self.__dict__.pop("_K", None)
 
     @property
     def K(self) -> sp.csr_matrix:
