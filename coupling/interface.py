@@ -39,9 +39,14 @@ class CouplingInterface:
         kinds: (n,) 0 free, 1 ghost.
         regions: gives the prescribed FE nodes.
         regularization: of the nodal projection.
+        min_support: drop prescribed nodes whose particle support ``sum_p N_p(x_node)^2``
+            (the diagonal of M) is below this fraction of the median: such nodes (a free
+            surface, a cavity) would make the projection ill-conditioned and amplify noise;
+            they stay FE dofs.
     """
 
-    def __init__(self, problem, x, kinds, regions: CouplingRegions, regularization: float = 0.0):
+    def __init__(self, problem, x, kinds, regions: CouplingRegions, regularization: float = 0.0,
+                 min_support: float = 0.0):
         self.problem = problem
         V, domain = problem.V, problem.domain
         self.comm = comm = domain.comm
@@ -72,6 +77,8 @@ class CouplingInterface:
             bs = Vc.dofmap.bs
             coords = np.repeat(Vc.tabulate_dof_coordinates(), bs, axis=0)[: parent.size]
             local = parent[regions.prescribed_nodes(coords[:, :gdim])]
+            if min_support > 0:
+                local = self._supported(V, free, local, min_support)
             owned = local[local < V.dofmap.index_map.size_local * V.dofmap.index_map_bs]
             projection = NodalProjection(free, owned, regularization)
             self.fields.append(_Field(sub, ghost, free, projection, np.sort(owned)))
@@ -88,6 +95,23 @@ class CouplingInterface:
         problem.petsc_options.setdefault("snes_lag_jacobian_persists", True)
         problem._snes = None
         self.setup_time = time.perf_counter() - t0
+
+    def _supported(self, V, basis, candidates, fraction):
+        """The candidate dofs (local, owned and ghost) whose diagonal of M is large enough."""
+        import dolfinx.la
+
+        imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
+        diag = dolfinx.la.vector(imap, bs)
+        diag.array[:] = np.asarray(basis.local.multiply(basis.local).sum(axis=0)).ravel()
+        diag.scatter_reverse(dolfinx.la.InsertMode.add)
+        n_owned = imap.size_local * bs
+        owned = candidates[candidates < n_owned]
+        values = diag.array[owned]
+        median = np.median(np.concatenate(self.comm.allgather(values)))
+        mask = dolfinx.la.vector(imap, bs)
+        mask.array[owned[values >= fraction * median]] = 1.0
+        mask.scatter_forward()
+        return candidates[mask.array[candidates] > 0.5]
 
     def norm(self, v: np.ndarray) -> float:
         return float(np.sqrt(self.comm.allreduce(float(v @ v), MPI.SUM)))

@@ -17,6 +17,7 @@ DEMOS = [
     ("demos/2d/plate_hole.py", True),
     ("demos/2d/coupled_punch.py", True),
     ("demos/2d/wave_through_overlap.py", True),
+    ("demos/2d/cpt_coupled.py", True),
 ]
 DEMOS += [(str(p.relative_to(ROOT)), True) for p in sorted((ROOT / "demos" / "1d").glob("*.py"))]
 
