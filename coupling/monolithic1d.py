@@ -47,14 +47,6 @@ def rod_basis(rod: Rod1D, x: np.ndarray) -> np.ndarray:
     return N
 
 
-def _field_of_dofs(rod: Rod1D) -> np.ndarray:
-    """Field index (0 u, 1 v, 2 theta) of every rod dof."""
-    f = np.empty(rod.V.dofmap.index_map.size_local * rod.V.dofmap.bs, dtype=int)
-    for k, name in enumerate(FIELDS):
-        f[rod.field_dofs[name][0]] = k
-    return f
-
-
 @dataclass
 class Coupled1D:
     """The assembled coupled problem; build with :func:`full_overlap` or :func:`partial_overlap`.
@@ -186,5 +178,5 @@ def partial_overlap(string: GluedString, rod: Rod1D, q_hat: float,
         rod.set_cell_weights(name, weight)
     xc = 0.5 * (string.x[:-1] + string.x[1:])
     w_de = np.where((xc >= x_rod)[:, None], 1.0 - q[None, :], 1.0)
-    fixed = nq + np.flatnonzero(np.isin(free_d, clamp))  # none: clamp not in free_d
-    return Coupled1D(string, rod, T, S, w_de, fixed.astype(int))
+    # the clamp is removed from X (not in free_d) and every particle is free: nothing held
+    return Coupled1D(string, rod, T, S, w_de, np.array([], dtype=int))
