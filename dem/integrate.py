@@ -16,37 +16,57 @@ from numba import njit, prange
 
 from dem.contact import ContactMaterial, pair_table
 from dem.errors import BlowUpError, DomainError
-from dem.forces import NOUT, pair_forces, wall_forces
+from dem.forces import NOUT, PARALLEL_MIN, pair_forces, wall_forces
 from dem.neighbours import NeighbourList
 from dem.state import FREE, GHOST
-from dem.timestep import choose_dt, critical_dt
+from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
 from dem.walls import WallSet
 
-__all__ = ["Simulation", "kick", "kick_drift"]
+__all__ = ["Simulation", "kick"]
+
+
+@njit(cache=True)
+def _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd):
+    """v += h (F/m + g), omega += h T/I for particle i; wd[i] = work of the dissipative
+    parts (fd, td) in this kick, exact for the kinetic energy: h f . (u_old + u_new)/2."""
+    w = 0.0
+    for c in range(3):
+        u0 = v[i, c]
+        v[i, c] = u0 + h * (force[i, c] / mass[i] + g[c])
+        o0 = omega[i, c]
+        omega[i, c] = o0 + h * torque[i, c] / inertia[i]
+        w += 0.5 * h * (fd[i, c] * (u0 + v[i, c]) + td[i, c] * (o0 + omega[i, c]))
+    wd[i] = w
 
 
 @njit(parallel=True, cache=True)
-def kick(v, omega, force, torque, mass, inertia, kind, g, h):
-    """Half-kick of FREE particles by h [s]: v += h (F/m + g), omega += h T/I."""
+def _kick_par(x, v, omega, force, torque, fd, td, mass, inertia, kind, g, h, dt, wd):
     for i in prange(v.shape[0]):
-        if kind[i] != 0:
-            continue
-        for c in range(3):
-            v[i, c] += h * (force[i, c] / mass[i] + g[c])
-            omega[i, c] += h * torque[i, c] / inertia[i]
+        wd[i] = 0.0
+        if kind[i] == 0:
+            _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd)
+            for c in range(3):
+                x[i, c] += dt * v[i, c]
 
 
-@njit(parallel=True, cache=True)
-def kick_drift(x, v, omega, force, torque, mass, inertia, kind, g, dt):
-    """Half-kick by dt/2 then drift x += dt v, FREE particles only."""
-    h = 0.5 * dt
-    for i in prange(v.shape[0]):
-        if kind[i] != 0:
-            continue
-        for c in range(3):
-            v[i, c] += h * (force[i, c] / mass[i] + g[c])
-            omega[i, c] += h * torque[i, c] / inertia[i]
-            x[i, c] += dt * v[i, c]
+@njit(cache=True)
+def _kick_ser(x, v, omega, force, torque, fd, td, mass, inertia, kind, g, h, dt, wd):
+    for i in range(v.shape[0]):
+        wd[i] = 0.0
+        if kind[i] == 0:
+            _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd)
+            for c in range(3):
+                x[i, c] += dt * v[i, c]
+
+
+def kick(p, fd, td, g, h, drift_dt, wd) -> float:
+    """Half-kick of FREE particles of `Particles` p by h [s] then drift x += drift_dt v
+    (drift_dt = 0: kick only). fd, td (n, 3): dissipative parts of force and torque; wd
+    (n,) scratch. Returns the work of the dissipative forces in this kick [J]."""
+    kern = _kick_par if p.n >= PARALLEL_MIN else _kick_ser
+    kern(p.x, p.v, p.omega, p.force, p.torque, fd, td, p.mass, p.inertia, p.kind, g, h,
+         drift_dt, wd)
+    return float(wd.sum())
 
 
 class Simulation:
@@ -56,7 +76,8 @@ class Simulation:
         particles: `dem.state.Particles` (modified in place).
         materials: a `ContactMaterial` or a list indexed by ``particles.material``.
         walls: `dem.walls.PlaneWall` list. gravity: (3,) [m/s^2].
-        dt: time step [s]; None: ``safety * critical_dt``; above critical raises
+        dt: time step [s]; None: ``safety * critical_dt`` (safety None:
+            `dem.timestep.DEFAULT_SAFETY` of the law); above critical raises
             `TimeStepError` unless ``force_dt``. v_max: expected impact speed [m/s] for
             the Hertz estimate. skin: Verlet skin [m] (default 0.1 x largest diameter).
         domain: ((3,), (3,)) box; a FREE particle leaving it raises `DomainError`.
@@ -68,7 +89,7 @@ class Simulation:
     """
 
     def __init__(self, particles, materials, walls=(), gravity=(0.0, 0.0, 0.0), dt=None, *,
-                 safety=0.2, force_dt=False, v_max=None, skin=None, domain=None,
+                 safety=None, force_dt=False, v_max=None, skin=None, domain=None,
                  allow_overlap=False, blowup_factor=10.0, check_every=100, state_path=None):
         self.p = particles
         mats = [materials] if isinstance(materials, ContactMaterial) else list(materials)
@@ -83,6 +104,8 @@ class Simulation:
         if particles.dim == 2 and self.gravity[2] != 0:
             raise ValueError("gravity[2] must be 0 for 2D disks")
         self.dt_crit = critical_dt(particles, mats, v_max)
+        if safety is None:
+            safety = DEFAULT_SAFETY[mats[0].law]
         self.dt = choose_dt(dt, self.dt_crit, safety, force_dt)
         skin = 0.2 * float(particles.radius.max()) if skin is None else float(skin)
         self.nl = NeighbourList(particles.n, skin)
@@ -93,9 +116,11 @@ class Simulation:
         self.time, self.nsteps = 0.0, 0
         self._ghosts = np.flatnonzero(particles.kind == GHOST)
         self._x0 = particles.x.copy()
-        self._led = dict(damping=0.0, friction=0.0, walls=0.0, ghosts=0.0)
-        self._pw = self.compute_forces()
-        self._elastic = self._pw[0]
+        self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0)
+        self._fd, self._td = np.zeros((particles.n, 3)), np.zeros((particles.n, 3))
+        self._wd, self._out = np.zeros(particles.n), np.empty((0, NOUT))
+        self._elastic, _, _, pw, pg = self.compute_forces()
+        self._pw = (pw, pg)
         self._e0 = self.kinetic_energy().sum() + self._elastic
         self._good = None
         self._check()
@@ -103,44 +128,48 @@ class Simulation:
     # ---------------------------------------------------------------- forces
     def compute_forces(self, update_history: bool = True):
         """Contact forces at the current state into ``p.force``/``p.torque`` and
-        ``walls.force``. Returns (elastic [J], damping power, friction power, wall power,
-        ghost power [W]). ``update_history=False`` leaves the tangential springs untouched
-        (re-evaluation inside a staggered coupling iteration)."""
+        ``walls.force``. Returns (elastic energy [J], tangential spring loss [J], friction
+        dissipation estimate [J], wall power [W], ghost power [W]). ``update_history=False`` leaves the contact history
+        untouched (re-evaluation inside a staggered coupling iteration)."""
         p, nl, w = self.p, self.nl, self.walls
         if nl.needs_rebuild(p.x, w.point):
             nl.build(p.x, p.radius, w.point, w.normal)
             self._check_domain()
-        hist, slip, whist, wslip = nl.hist, nl.slip, nl.whist, nl.wslip
+        h = [nl.hist, nl.slip, nl.etan, nl.whist, nl.wslip, nl.wetan]
         if not update_history:
-            hist, slip, whist, wslip = hist.copy(), slip.copy(), whist.copy(), wslip.copy()
-        p.force[:] = 0.0
-        p.torque[:] = 0.0
-        out = np.empty((max(len(nl.pi), len(nl.wi)), NOUT))
-        e1, d1, f1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass,
-                                 p.material, self.table, hist, slip, self.dt, out,
-                                 p.force, p.torque)
-        e2, d2, f2, pw = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass,
-                                     p.material, w.point, w.normal, w.velocity, w.material,
-                                     self.table, whist, wslip, self.dt, out, p.force,
-                                     p.torque, w.force)
+            h = [a.copy() for a in h]
+        for a in (p.force, p.torque, self._fd, self._td):
+            a[:] = 0.0
+        m = max(len(nl.pi), len(nl.wi))
+        if self._out.shape[0] < m:
+            self._out = np.empty((int(1.2 * m) + 16, NOUT))
+        e1, l1, f1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
+                             self.table, h[0], h[1], h[2], self.dt, self._out, p.force,
+                             p.torque, self._fd, self._td)
+        e2, l2, f2, pw = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass,
+                                 p.material, w.point, w.normal, w.velocity, w.material,
+                                 self.table, h[3], h[4], h[5], self.dt, self._out, p.force,
+                                 p.torque, self._fd, self._td, w.force)
         g = self._ghosts  # power of the prescribed ghosts on the free particles
-        pg = -float((p.force[g] * p.v[g]).sum() + (p.torque[g] * p.omega[g]).sum())
-        return e1 + e2, d1 + d2, f1 + f2, pw, pg
+        pg = -float((p.force[g] * p.v[g]).sum() + (p.torque[g] * p.omega[g]).sum()) \
+            if len(g) else 0.0
+        return e1 + e2, l1 + l2, f1 + f2, pw, pg
 
     # ---------------------------------------------------------------- stepping
     def step(self, n: int = 1):
         """Advance n steps of dt (velocity Verlet), with blow-up and domain checks."""
-        p, dt = self.p, self.dt
+        p, dt, led = self.p, self.dt, self._led
         for _ in range(int(n)):
-            kick_drift(p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia, p.kind,
-                       self.gravity, dt)
+            led["dissipated"] -= kick(p, self._fd, self._td, self.gravity, 0.5 * dt, dt,
+                                      self._wd)
             self.walls.advance(dt)
-            new = self.compute_forces()
-            kick(p.v, p.omega, p.force, p.torque, p.mass, p.inertia, p.kind, self.gravity,
-                 0.5 * dt)
-            for k, name in ((1, "damping"), (2, "friction"), (3, "walls"), (4, "ghosts")):
-                self._led[name] += 0.5 * dt * (self._pw[k] + new[k])
-            self._pw, self._elastic = new, new[0]
+            e, loss, fric, pw, pg = self.compute_forces()
+            led["dissipated"] += loss - kick(p, self._fd, self._td, self.gravity, 0.5 * dt,
+                                             0.0, self._wd)
+            led["friction"] += fric
+            led["walls"] += 0.5 * dt * (self._pw[0] + pw)
+            led["ghosts"] += 0.5 * dt * (self._pw[1] + pg)
+            self._pw, self._elastic = (pw, pg), e
             self.time += dt
             self.nsteps += 1
             if self.nsteps % self.check_every == 0:
@@ -156,17 +185,22 @@ class Simulation:
                          0.5 * (p.inertia[f] * (p.omega[f] ** 2).sum(1)).sum()])
 
     def energy(self) -> dict:
-        """Energy ledger [J]: kinetic, elastic, dissipated (damping, friction), work of
-        gravity, walls and ghosts; ``balance`` = (kinetic + elastic + dissipated - work)
-        minus its initial value, zero up to time discretisation."""
+        """Energy ledger [J] of the FREE particles: kinetic, elastic (contacts), dissipated
+        (exact work of the dissipative forces in the Verlet kicks plus the energy the
+        tangential springs lose without work), split into friction (sliding power x dt,
+        rolling resistance, spring losses) and damping (the rest: dashpots and clipping),
+        work of gravity, moving walls and ghosts; ``balance`` = kinetic + elastic +
+        dissipated - work - initial, zero up to the time discretisation error of the
+        conservative forces."""
         p, f = self.p, self.p.kind == FREE
         kt, kr = self.kinetic_energy()
         wg = float((p.mass[f, None] * (p.x[f] - self._x0[f]) * self.gravity).sum())
         led = self._led
-        stored = kt + kr + self._elastic + led["damping"] + led["friction"]
+        stored = kt + kr + self._elastic + led["dissipated"]
         work = wg + led["walls"] + led["ghosts"]
         return dict(kinetic_translational=kt, kinetic_rotational=kr, elastic=self._elastic,
-                    dissipated_damping=led["damping"], dissipated_friction=led["friction"],
+                    dissipated_damping=led["dissipated"] - led["friction"],
+                    dissipated_friction=led["friction"],
                     work_gravity=wg, work_walls=led["walls"], work_ghosts=led["ghosts"],
                     initial=self._e0, balance=stored - work - self._e0)
 

@@ -129,16 +129,16 @@ def wall_candidates(x, radius, wall_p, wall_n, skin: float):
     return i.astype(np.int64), w.astype(np.int64)
 
 
-def carry_history(old_keys, old_hist, old_slip, new_keys):
-    """History of the new contacts, matched by key (sorted old_keys; searchsorted)."""
-    hist = np.zeros((new_keys.shape[0], 3))
-    slip = np.zeros(new_keys.shape[0], np.int8)
+def carry_history(old_keys, new_keys, *arrays):
+    """Per-contact arrays (first axis = contact) re-indexed from the sorted ``old_keys`` to
+    ``new_keys`` (searchsorted); new contacts get zeros."""
+    out = [np.zeros((new_keys.shape[0],) + a.shape[1:], a.dtype) for a in arrays]
     if old_keys.shape[0] and new_keys.shape[0]:
         idx = np.minimum(np.searchsorted(old_keys, new_keys), old_keys.shape[0] - 1)
         hit = old_keys[idx] == new_keys
-        hist[hit] = old_hist[idx[hit]]
-        slip[hit] = old_slip[idx[hit]]
-    return hist, slip
+        for a, b in zip(arrays, out, strict=True):
+            b[hit] = a[idx[hit]]
+    return out
 
 
 @njit(parallel=True, cache=True)
@@ -155,8 +155,9 @@ def _max_disp2(x, x0):
 class NeighbourList:
     """Verlet list of particle pairs and particle-wall pairs with their contact history.
 
-    Attributes: ``pi, pj`` (m,) int64; ``hist`` (m, 3) [m]; ``slip`` (m,) int8; the same
-    for walls as ``wi, ww, whist, wslip``; ``builds`` (number of rebuilds)."""
+    Attributes: ``pi, pj`` (m,) int64; ``hist`` (m, 3) tangential springs [m]; ``slip``
+    (m,) int8 sliding flags; ``etan`` (m,) spring energies [J]; the same for walls as
+    ``wi, ww, whist, wslip, wetan``; ``builds`` (number of rebuilds)."""
 
     def __init__(self, n: int, skin: float):
         if not skin >= 0:
@@ -166,13 +167,17 @@ class NeighbourList:
         self.pi, self.pj, self.wi, self.ww = e, e.copy(), e.copy(), e.copy()
         self.hist, self.whist = np.zeros((0, 3)), np.zeros((0, 3))
         self.slip, self.wslip = np.zeros(0, np.int8), np.zeros(0, np.int8)
+        self.etan, self.wetan = np.zeros(0), np.zeros(0)
         self._x0 = None
         self._wp0 = None
 
     def needs_rebuild(self, x, wall_p) -> bool:
         if self._x0 is None:
             return True
-        d = np.sqrt(_max_disp2(x, self._x0))
+        if x.shape[0] >= 4096:
+            d = np.sqrt(_max_disp2(x, self._x0))
+        else:  # thread start-up would cost more than the work
+            d = np.sqrt(((x - self._x0) ** 2).sum(axis=1).max(initial=0.0))
         if wall_p.shape[0]:
             d += np.sqrt(((wall_p - self._wp0) ** 2).sum(axis=1).max())
         return d > 0.5 * self.skin
@@ -180,13 +185,13 @@ class NeighbourList:
     def build(self, x, radius, wall_p, wall_n):
         n = self.n
         pi, pj = build_pairs(x, radius, self.skin)
-        self.hist, self.slip = carry_history(self.pi * n + self.pj, self.hist, self.slip,
-                                             pi * n + pj)
+        self.hist, self.slip, self.etan = carry_history(
+            self.pi * n + self.pj, pi * n + pj, self.hist, self.slip, self.etan)
         self.pi, self.pj = pi, pj
         nw = max(wall_p.shape[0], 1)
         wi, ww = wall_candidates(x, radius, wall_p, wall_n, self.skin)
-        self.whist, self.wslip = carry_history(self.wi * nw + self.ww, self.whist, self.wslip,
-                                               wi * nw + ww)
+        self.whist, self.wslip, self.wetan = carry_history(
+            self.wi * nw + self.ww, wi * nw + ww, self.whist, self.wslip, self.wetan)
         self.wi, self.ww = wi, ww
         self._x0 = x.copy()
         self._wp0 = wall_p.copy()

@@ -77,7 +77,7 @@ class Particles:
 
     @staticmethod
     def _vec(name, a, n=None):
-        a = np.asarray(a, dtype=np.float64)
+        a = np.array(a, dtype=np.float64)  # a copy: never alias the caller's arrays
         if a.ndim == 2 and a.shape[1] == 2:
             a = np.column_stack([a, np.zeros(a.shape[0])])
         if a.ndim != 2 or a.shape[1] != 3 or (n is not None and a.shape[0] != n):

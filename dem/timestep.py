@@ -17,7 +17,7 @@ import numpy as np
 from dem.contact import ContactMaterial
 from dem.errors import TimeStepError
 
-__all__ = ["choose_dt", "critical_dt", "hertz_dt", "rayleigh_dt"]
+__all__ = ["DEFAULT_SAFETY", "choose_dt", "critical_dt", "hertz_dt", "rayleigh_dt"]
 
 
 def rayleigh_dt(radius, E: float, nu: float, density: float) -> float:
@@ -54,6 +54,11 @@ def critical_dt(particles, materials, v_max: float | None = None) -> float:
     if not dts:
         raise ValueError("no particle uses any of the given materials")
     return min(dts)
+
+
+DEFAULT_SAFETY = {"hertz_mindlin": 0.2, "linear": 0.05}
+"""Default dt / dt_crit: 0.2 Rayleigh (peers; ~27 steps per Hertz contact) and 0.05 of the
+linear stability limit (~31 steps per linear contact)."""
 
 
 def choose_dt(dt: float | None, dt_crit: float, safety: float = 0.2,

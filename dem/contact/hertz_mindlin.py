@@ -33,8 +33,8 @@ def hertz_mindlin_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, s
         fn = 0.0
     kt = 8.0 * prm[P_GSTAR] * a
     gt = _C * b * math.sqrt(kt * meff)
-    ftx, fty, ftz, sx, sy, sz, slip, e_t, p_d, p_f = coulomb_tangential(
+    ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric = coulomb_tangential(
         kt, gt, prm[P_MUS], prm[P_MUD], fn, vtx, vty, vtz, sx, sy, sz, slip, dt)
-    e_el = 0.4 * fel * delta + e_t
-    p_damp = (fn - fel) * vn + p_d
-    return fn, ftx, fty, ftz, sx, sy, sz, slip, e_el, p_damp, p_f
+    e_n = 0.4 * fel * delta
+    return (fn, fn - fel, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_n, e_pre, e_t,
+            p_fric)

@@ -85,29 +85,32 @@ def coulomb_tangential(kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt
     """Tangential spring-dashpot with static/dynamic Coulomb limit (seed 003 eq. 6).
 
     The spring s [m] integrates vt; trial force kt s + gt vt. Sticking contacts are
-    limited by mus |fn|; once sliding (slip = 1) by mud |fn| until the spring force falls
-    below it. When the limit is hit the spring is rescaled so |kt s| = mu |fn| and the
-    dashpot is dropped (LIGGGHTS). Returns (ftx, fty, ftz, sx, sy, sz, slip, e_t, p_damp,
-    p_fric): force on j [N], new spring, flag, spring energy [J], power dissipated by the
-    dashpot and by Coulomb sliding [W]."""
+    limited by mus |fn|; once sliding (slip = 1) by mud |fn| until the trial force falls
+    below it. When the limit is hit the force becomes mud |fn| along the trial force and
+    the spring is reset to carry it alone (LAMMPS: the *total* tangential force is capped;
+    LIGGGHTS caps the spring only, so its dashpot can exceed the Coulomb limit). Returns (ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip,
+    e_pre, e_t, p_fric): total and dissipative force on j [N] (the dashpot when sticking,
+    the whole Coulomb force when sliding), new spring, flag, spring energy before the
+    increment (at the current kt) and after [J], sliding power ft . vt [W]."""
+    e_pre = 0.5 * kt * (sx * sx + sy * sy + sz * sz)
     sx += vtx * dt
     sy += vty * dt
     sz += vtz * dt
     fsx, fsy, fsz = kt * sx, kt * sy, kt * sz
-    fs = math.sqrt(fsx * fsx + fsy * fsy + fsz * fsz)
+    fdx, fdy, fdz = gt * vtx, gt * vty, gt * vtz
+    ftx, fty, ftz = fsx + fdx, fsy + fdy, fsz + fdz
+    ft = math.sqrt(ftx * ftx + fty * fty + ftz * ftz)
+    fc = max(fn, 0.0)  # no friction under a tensile (unclipped) normal force
     mu = mud if slip else mus
-    cap = mu * abs(fn)
-    if fs > cap and fs > 0.0:
-        scale = mud * abs(fn) / fs
-        ftx, fty, ftz = fsx * scale, fsy * scale, fsz * scale
-        sx, sy, sz = sx * scale, sy * scale, sz * scale
-        p_f = ftx * vtx + fty * vty + ftz * vtz
-        p_d = 0.0
+    p_fric = 0.0
+    slip = 0
+    if ft > mu * fc and ft > 0.0:
+        scale = mud * fc / ft
+        ftx, fty, ftz = ftx * scale, fty * scale, ftz * scale
+        fdx, fdy, fdz = ftx, fty, ftz
+        if kt > 0.0:
+            sx, sy, sz = ftx / kt, fty / kt, ftz / kt
+        p_fric = ftx * vtx + fty * vty + ftz * vtz
         slip = 1
-    else:
-        ftx, fty, ftz = fsx + gt * vtx, fsy + gt * vty, fsz + gt * vtz
-        p_d = gt * (vtx * vtx + vty * vty + vtz * vtz)
-        p_f = 0.0
-        slip = 0
     e_t = 0.5 * kt * (sx * sx + sy * sy + sz * sz)
-    return ftx, fty, ftz, sx, sy, sz, slip, e_t, p_d, p_f
+    return ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric

@@ -22,9 +22,12 @@ def linear_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt
     """Common law signature. prm: pair row (NPARAM,); delta [m]; reff [m]; meff [kg];
     vn [m/s]; vt (3 scalars) [m/s]; spring s (3 scalars) [m]; slip flag; dt [s].
 
-    Returns (fn, ftx, fty, ftz, sx, sy, sz, slip, e_el, p_damp, p_fric): normal force [N]
-    (> 0 repulsive), tangential force on j [N], new spring, flag, elastic energy [J],
-    power dissipated by damping (incl. normal force clipping) and by friction [W]."""
+    Returns (fn, fnd, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_n, e_pre, e_t,
+    p_fric): normal force [N] (> 0 repulsive) and its dissipative part (dashpot and
+    clipping), tangential force on j and its dissipative part [N] (dashpot, or all of it
+    when sliding), new spring [m], slip flag, normal elastic energy [J], tangential spring
+    energy before/after the increment [J], sliding power [W]. The elastic energy is
+    consistent with the non-dissipative forces, so an energy ledger closes."""
     kn = prm[P_KN]
     kt = prm[P_KT]
     b = abs(prm[P_BETA])
@@ -33,8 +36,8 @@ def linear_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt
     if prm[P_CLIP] != 0.0 and fn < 0.0:
         fn = 0.0
     gt = 2.0 * b * math.sqrt(kt * meff)
-    ftx, fty, ftz, sx, sy, sz, slip, e_t, p_d, p_f = coulomb_tangential(
+    ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric = coulomb_tangential(
         kt, gt, prm[P_MUS], prm[P_MUD], fn, vtx, vty, vtz, sx, sy, sz, slip, dt)
-    e_el = 0.5 * kn * delta * delta + e_t
-    p_damp = (fn - fel) * vn + p_d
-    return fn, ftx, fty, ftz, sx, sy, sz, slip, e_el, p_damp, p_f
+    e_n = 0.5 * kn * delta * delta
+    return (fn, fn - fel, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_n, e_pre, e_t,
+            p_fric)
