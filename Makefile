@@ -8,7 +8,7 @@ NP      ?= 2
 # python3.12 from PATH, else a pyenv-installed 3.12 (pyenv shims refuse when 3.12 is not global)
 PYTHON312 ?= $(shell for p in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/bin/python3.12 /usr/local/bin/python3.12; do \
 	$$p --version >/dev/null 2>&1 && { echo $$p; break; }; done)
-SCENE   ?= scenes/punch_2d.toml
+SCENE   ?= scenes/cpt_2d.toml
 PYTEST_ARGS ?=
 
 export PYVISTA_OFF_SCREEN := true
@@ -27,7 +27,7 @@ $(VENV)/.installed: pyproject.toml
 
 # the main job: the coupled DE x FE scene on 2 MPI ranks (outputs in output/<scene name>/)
 demo: venv
-	$(MPIEXEC) -n $(NP) $(VENV)/bin/granfe run $(SCENE)
+	NUMBA_NUM_THREADS=1 $(MPIEXEC) -n $(NP) $(VENV)/bin/granfe run $(SCENE)
 
 # serial half (everything), then the MPI half (tests marked `mpi`) on 2 ranks;
 # NUMBA_NUM_THREADS=1 under MPI so two ranks do not oversubscribe two cores.

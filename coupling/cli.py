@@ -41,6 +41,8 @@ def main(argv: list[str] | None = None) -> int:
         from coupling.runner import summarise
         print(json.dumps({"scene": str(args.scene), "valid": True, **summarise(scene)}, indent=2))
         return 0
+    if args.command == "run" and scene.scene.kind == "penetration":
+        return _run_penetration(scene, args)
 
     from mpi4py import MPI
 
@@ -58,6 +60,29 @@ def main(argv: list[str] | None = None) -> int:
             print(f"granfe: {err}", file=sys.stderr)
         return 1
     if MPI.COMM_WORLD.rank == 0:
+        print(f"granfe: outputs in {out}")
+    return 0
+
+
+def _run_penetration(scene, args) -> int:
+    from mpi4py import MPI
+
+    from coupling.penetration_run import run_penetration
+
+    out = args.out or Path("output") / scene.scene.name
+    comm = MPI.COMM_WORLD
+    if comm.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "scene.toml").write_text(scene.to_toml())
+    o = scene.output
+    try:
+        run_penetration(scene.parameters(), out, comm, frames=o.frames, fields=o.fields,
+                        particles=o.particles, png=o.png, progress=not args.no_progress)
+    except RuntimeError as err:
+        if comm.rank == 0:
+            print(f"granfe: {err}", file=sys.stderr)
+        return 1
+    if comm.rank == 0:
         print(f"granfe: outputs in {out}")
     return 0
 

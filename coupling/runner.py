@@ -53,8 +53,35 @@ def _write_particles(out: Path, step: int, t: float, x, u, theta, kinds, series:
         f"{entries}\n  </Collection>\n</VTKFile>\n")
 
 
-def summarise(scene: Scene) -> dict:
+def _summarise_penetration(scene) -> dict:
+    prm = scene.parameters()
+    d = 2 * prm.radius
+    band = prm.ghost_width * d
+    area = (2 * (prm.window_half_width + band)) * (prm.window_depth + band)
+    grains = area / (np.sqrt(3) / 2 * d * d)
+    from dem import ContactMaterial, Particles, critical_dt
+    from dem.timestep import DEFAULT_SAFETY
+
+    probe = Particles.spheres(np.zeros((1, 3)), prm.radius * (1 - prm.jitter), prm.density, dim=2)
+    material = ContactMaterial(E=prm.kn, nu=prm.nu, density=prm.density, friction=prm.friction,
+                               restitution=prm.restitution, law="linear", kn=prm.kn,
+                               kt=prm.kt_over_kn * prm.kn)
+    dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [material])  # the DEM's default choice
+    # the size field ramps from fine to coarse over about the window size again
+    window_cells = 4 * (2 * (prm.window_half_width + band) * (prm.window_depth + band)) / prm.element_size_window**2
+    far_cells = 2 * prm.chamber_width * prm.chamber_depth / prm.element_size_far**2
+    nodes = (window_cells + far_cells) / 2
+    return {"kind": "penetration", "dimension": 2, "grains_in_window_and_ghost_band": int(grains),
+            "fe_dofs_estimate": int(3 * nodes), "dem_time_step_estimate_s": float(dt),
+            "dem_steps_estimate": int((prm.settle_time + prm.depth / prm.velocity) / dt),
+            "fe_steps": int(np.ceil(prm.depth / prm.velocity / (prm.substeps * dt))),
+            "memory_estimate_MB": round((grains * 30 * 8 + nodes * 3 * 60 * 8) / 1e6, 1)}
+
+
+def summarise(scene) -> dict:
     """Sizes and cost estimates without building FE objects (for ``granfe check``)."""
+    if scene.scene.kind == "penetration":
+        return _summarise_penetration(scene)
     g, p, w = scene.geometry, scene.particles, scene.window
     d = 2 * p.radius
     grains_block = (g.width / d) * (g.height / (d * np.sqrt(3) / 2))
@@ -190,4 +217,7 @@ def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True) -
         raise FileNotFoundError(f"no checkpoint in {out} (expected {state})")
     step = json.loads(state.read_text())["step"]
     scene = load_scene(out / "scene.toml")
+    if scene.scene.kind != "bonded_punch":
+        raise FileNotFoundError(f"restart of {scene.scene.kind!r} scenes is not supported yet; "
+                                f"the last state of {out} is in {out / 'last_good'} when a run failed")
     return run_scene(scene, out, comm, progress, start_step=step)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 __all__ = ["SceneError", "Scene", "load_scene", "parse_overrides", "KINDS"]
 
-KINDS = ("bonded_punch",)
+KINDS = ("bonded_punch", "penetration")
 
 
 class SceneError(ValueError):
@@ -39,7 +39,7 @@ class SceneInfo:
         if self.kind not in KINDS:
             raise SceneError(f"scene.kind must be one of {list(KINDS)}, got {self.kind!r}")
         if self.dimension != 2:
-            raise SceneError(f"scene.dimension: kind {self.kind!r} is 2D only, got {self.dimension!r}")
+            raise SceneError(f"scene.dimension: kind {self.kind!r} is 2D only so far, got {self.dimension!r}")
 
 
 @dataclass(frozen=True)
@@ -145,8 +145,24 @@ class Output:
             raise SceneError(f"output.every must be >= 1, got {self.every!r}")
 
 
+class _Tables:
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_toml(self) -> str:
+        lines = []
+        for section, values in self.to_dict().items():
+            lines.append(f"[{section}]")
+            for k, v in values.items():
+                lines.append(f"{k} = {_toml_value(v)}")
+            lines.append("")
+        return "\n".join(lines)
+
+
 @dataclass(frozen=True)
-class Scene:
+class Scene(_Tables):
+    """A ``bonded_punch`` scene: a rough punch into bonded grains (quasi-static)."""
+
     scene: SceneInfo = field(default_factory=SceneInfo)
     geometry: Geometry = field(default_factory=Geometry)
     particles: Particles = field(default_factory=Particles)
@@ -170,17 +186,139 @@ class Scene:
                              f"geometry.element_size = {g.element_size} leave FE nodes of the "
                              "overlap without grains (the L2 projection needs several per element)")
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
-    def to_toml(self) -> str:
-        lines = []
-        for section, values in self.to_dict().items():
-            lines.append(f"[{section}]")
-            for k, v in values.items():
-                lines.append(f"{k} = {_toml_value(v)}")
-            lines.append("")
-        return "\n".join(lines)
+
+# ---- penetration scenes ----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Chamber:
+    """Continuum chamber [m] and its element sizes (fine at the window, coarse far)."""
+
+    width: float = 0.3
+    depth: float = 0.2
+    element_size_window: float = 0.008
+    element_size_far: float = 0.04
+
+
+@dataclass(frozen=True)
+class Grains:
+    """Disks: radius [m] (reduced by up to ``jitter``), linear contacts kn [N/m per m],
+    kt/kn, Coulomb friction, restitution; settled for ``settle_time`` [s] under gravity."""
+
+    radius: float = 1.5e-3
+    jitter: float = 0.1
+    kn: float = 2.0e5
+    kt_over_kn: float = 0.5
+    nu: float = 0.25
+    density: float = 2650.0
+    friction: float = 0.5
+    restitution: float = 0.5
+    settle_time: float = 0.3
+    gravity: float = 9.81
+    seed: int = 1
+
+
+@dataclass(frozen=True)
+class PenetrationWindow:
+    half_width: float = 0.04
+    depth: float = 0.08
+    ghost_width: float = 2.5
+    handshake: float = 1.0
+
+
+@dataclass(frozen=True)
+class Cone:
+    """Cone penetrometer (2D section): radius [m], apex angle [deg], velocity [m/s], depth [m]."""
+
+    shape: str = "cone"
+    radius: float = 0.01
+    apex_deg: float = 60.0
+    velocity: float = 0.2
+    depth: float = 0.04
+
+    def __post_init__(self):
+        if self.shape != "cone":
+            raise SceneError(f"penetrator.shape must be 'cone' for a penetration scene, got {self.shape!r}")
+
+
+@dataclass(frozen=True)
+class Exchange:
+    """DE sub-steps per FE step and the relaxation of the prescribed FE values."""
+
+    substeps: int = 50
+    relaxation: float = 0.3
+
+    def __post_init__(self):
+        if not 0 < self.relaxation <= 1:
+            raise SceneError(f"coupling.relaxation must lie in (0, 1], got {self.relaxation!r}")
+
+
+@dataclass(frozen=True)
+class PenetrationOutput:
+    frames: int = 5
+    fields: bool = True
+    particles: bool = True
+    png: bool = True
+
+    def __post_init__(self):
+        if self.frames < 1:
+            raise SceneError(f"output.frames must be >= 1, got {self.frames!r}")
+
+
+# PenetrationParameters field -> section.key of the scene
+_PENETRATION_KEYS = {
+    "chamber_width": "chamber.width", "chamber_depth": "chamber.depth",
+    "element_size_window": "chamber.element_size_window",
+    "element_size_far": "chamber.element_size_far",
+    "window_half_width": "window.half_width", "window_depth": "window.depth",
+    "ghost_width": "window.ghost_width", "handshake": "window.handshake",
+    "radius": "grains.radius", "jitter": "grains.jitter", "kn": "grains.kn",
+    "kt_over_kn": "grains.kt_over_kn", "nu": "grains.nu", "density": "grains.density",
+    "friction": "grains.friction", "restitution": "grains.restitution",
+    "settle_time": "grains.settle_time", "gravity": "grains.gravity", "seed": "grains.seed",
+    "cone_radius": "penetrator.radius", "apex_deg": "penetrator.apex_deg",
+    "velocity": "penetrator.velocity", "depth": "penetrator.depth",
+    "substeps": "coupling.substeps", "relaxation": "coupling.relaxation",
+}
+
+
+@dataclass(frozen=True)
+class PenetrationScene(_Tables):
+    """A ``penetration`` scene: a cone pushed into frictional grains coupled to the continuum."""
+
+    scene: SceneInfo = field(default_factory=lambda: SceneInfo(name="cpt_2d", kind="penetration"))
+    chamber: Chamber = field(default_factory=Chamber)
+    grains: Grains = field(default_factory=Grains)
+    window: PenetrationWindow = field(default_factory=PenetrationWindow)
+    penetrator: Cone = field(default_factory=Cone)
+    coupling: Exchange = field(default_factory=Exchange)
+    output: PenetrationOutput = field(default_factory=PenetrationOutput)
+
+    def __post_init__(self):
+        self.parameters()  # validate the combination, naming the scene key
+
+    def parameters(self):
+        """The :class:`coupling.penetration.PenetrationParameters` of this scene."""
+        from coupling.penetration import PenetrationParameters
+
+        c, g, w, p, x = self.chamber, self.grains, self.window, self.penetrator, self.coupling
+        values = dict(
+            chamber_width=c.width, chamber_depth=c.depth, element_size_window=c.element_size_window,
+            element_size_far=c.element_size_far, window_half_width=w.half_width,
+            window_depth=w.depth, ghost_width=w.ghost_width, handshake=w.handshake,
+            radius=g.radius, jitter=g.jitter, kn=g.kn, kt_over_kn=g.kt_over_kn, nu=g.nu,
+            density=g.density, friction=g.friction, restitution=g.restitution,
+            settle_time=g.settle_time, gravity=g.gravity, seed=g.seed, cone_radius=p.radius,
+            apex_deg=p.apex_deg, velocity=p.velocity, depth=p.depth, substeps=x.substeps,
+            relaxation=x.relaxation)
+        try:
+            return PenetrationParameters(**values)
+        except ValueError as err:
+            message = str(err)
+            for name, key in sorted(_PENETRATION_KEYS.items(), key=lambda kv: -len(kv[0])):
+                if message.startswith(name):
+                    message = key + message[len(name):]
+                    break
+            raise SceneError(message) from None
 
 
 def _toml_value(v):
@@ -191,7 +329,7 @@ def _toml_value(v):
     return repr(v)
 
 
-_SECTIONS = {f.name: f.default_factory for f in fields(Scene)}
+SCHEMAS = {"bonded_punch": Scene, "penetration": PenetrationScene}
 
 
 def _coerce(section: str, key: str, value, expected_type):
@@ -206,7 +344,12 @@ def _coerce(section: str, key: str, value, expected_type):
     return value
 
 
-def _build(data: dict) -> Scene:
+def _build(data: dict):
+    kind = data.get("scene", {}).get("kind", "bonded_punch") if isinstance(data.get("scene"), dict) else "bonded_punch"
+    if kind not in SCHEMAS:
+        raise SceneError(f"scene.kind must be one of {list(SCHEMAS)}, got {kind!r}")
+    schema = SCHEMAS[kind]
+    _SECTIONS = {f.name: type(f.default_factory()) for f in fields(schema)}
     sections = {}
     for name, values in data.items():
         if name not in _SECTIONS:
@@ -220,8 +363,10 @@ def _build(data: dict) -> Scene:
             if key not in types:
                 raise SceneError(f"unknown key {name}.{key}; known keys of [{name}]: {sorted(types)}")
         kwargs = {k: _coerce(name, k, v, types[k]) for k, v in values.items()}
+        if name == "scene" and kind == "penetration":
+            kwargs.setdefault("name", "cpt_2d")
         sections[name] = cls(**kwargs)
-    return Scene(**sections)
+    return schema(**sections)
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -240,7 +385,7 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
-def load_scene(path: str | Path | None = None, overrides: dict | None = None) -> Scene:
+def load_scene(path: str | Path | None = None, overrides: dict | None = None):
     """Scene from a TOML file (or defaults) with overrides; raises :class:`SceneError`."""
     data: dict = {}
     if path is not None:

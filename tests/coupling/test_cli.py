@@ -84,3 +84,17 @@ def test_run_two_ranks_equals_serial(tmp_path):
         assert proc.returncode == 0, proc.stderr[-3000:]
         forces.append([h["punch_force"] for h in json.loads((out / "history.json").read_text())["steps"]])
     assert abs(forces[0][-1] - forces[1][-1]) < 1e-10 * abs(forces[0][-1])
+
+
+@pytest.mark.slow
+def test_penetration_scene_runs(tmp_path):
+    out = tmp_path / "cpt"
+    proc = granfe("run", "scenes/cpt_2d.toml", "--out", str(out), "--no-progress",
+                  "--set", "grains.settle_time=0.04", "--set", "penetrator.depth=0.004",
+                  "--set", "penetrator.velocity=0.4", "--set", "output.png=false",
+                  "--set", "output.frames=2")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    assert results["grains"] > 500 and len(results["history"]) > 3
+    assert (out / "grains.pvd").exists() and (out / "tip_resistance.csv").exists()
+    assert all(abs(h["q_c"]) < 1e7 for h in results["history"])

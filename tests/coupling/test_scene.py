@@ -50,3 +50,20 @@ def test_bad_override_syntax():
 def test_missing_file(tmp_path):
     with pytest.raises(SceneError, match="does not exist"):
         load_scene(tmp_path / "nope.toml")
+
+
+def test_penetration_scene_defaults_and_named_errors(tmp_path):
+    from coupling.scene import PenetrationScene
+
+    scene = load_scene("scenes/cpt_2d.toml")
+    assert isinstance(scene, PenetrationScene)
+    assert scene.parameters().cone_radius == scene.penetrator.radius
+    assert load_scene(write(tmp_path, scene.to_toml())) == scene
+    with pytest.raises(SceneError, match=r"penetrator.depth = 0.09 m leaves the cone too close"):
+        load_scene("scenes/cpt_2d.toml", parse_overrides(["penetrator.depth=0.09"]))
+    with pytest.raises(SceneError, match=r"window.half_width = 0.015 must exceed twice the cone"):
+        load_scene("scenes/cpt_2d.toml", parse_overrides(["window.half_width=0.015"]))
+    with pytest.raises(SceneError, match=r"unknown key grains.kappa"):
+        load_scene("scenes/cpt_2d.toml", parse_overrides(["grains.kappa=1"]))
+    with pytest.raises(SceneError, match=r"scene.kind must be one of"):
+        load_scene(write(tmp_path, '[scene]\nkind = "tunnel"\n'))
