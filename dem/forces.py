@@ -9,7 +9,8 @@ not depend on the thread count or scheduling.
 
 Row layout of ``out`` (NOUT = 20): force on j [N] (0:3), torque on i (3:6) and on j
 (6:9) [N m]; their dissipative parts (dashpots, clipping, rolling resistance): force on j
-(9:12), torque on i (12:15), on j (15:18); elastic energy [J] (18); energy lost by the
+(9:12), torque on i (12:15), on j (15:18); elastic energy [J] (18, > 0 iff touching;
+rows of open contacts are only valid in 18-20); energy lost by the
 tangential spring other than through work this step [J] (19: change while sliding,
 projection onto the new tangent plane, stiffness change, release when the contact opens);
 friction dissipation estimate (sliding power x dt + column 19) [J] (20).
@@ -32,7 +33,7 @@ PARALLEL_MIN = 4096
 __all__ = ["NOUT", "PARALLEL_MIN", "apply_law", "pair_forces", "wall_forces"]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def apply_law(law, prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
     """Law registry: id -> law function (ids in `dem.contact.LAWS`)."""
     if law == 0:
@@ -40,7 +41,7 @@ def apply_law(law, prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, 
     return hertz_mindlin_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cross_arm(out, col, nx, ny, nz, fx, fy, fz, ai, aj):
     """Torques -a n x f on i (cols col..col+2) and j (col+3..col+5)."""
     cx = ny * fz - nz * fy
@@ -50,17 +51,19 @@ def _cross_arm(out, col, nx, ny, nz, fx, fy, fz, ai, aj):
     out[col + 3], out[col + 4], out[col + 5] = -aj * cx, -aj * cy, -aj * cz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _contact(k, kin, prm, hist, slip, etan, dt, wrx, wry, wrz, out):
     """Resolve contact k with kinematics ``kin``; wr = omega_i - omega_j [rad/s] (rolling).
     Writes row out (NOUT,); updates hist[k], slip[k], etan[k]."""
     nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj = kin
-    if delta <= 0.0:
-        out[:] = 0.0
+    if delta <= 0.0:  # open: only the columns the scatter tests (18, 20) are written
+        out[18] = 0.0
         out[19] = out[20] = etan[k]  # a loaded spring is released when the contact opens
-        hist[k, 0] = hist[k, 1] = hist[k, 2] = 0.0
-        slip[k] = 0
-        etan[k] = 0.0
+        if etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0 or hist[k, 1] != 0.0 \
+                or hist[k, 2] != 0.0:
+            hist[k, 0] = hist[k, 1] = hist[k, 2] = 0.0
+            slip[k] = 0
+            etan[k] = 0.0
         return
     sx, sy, sz = project_history(hist[k, 0], hist[k, 1], hist[k, 2], nx, ny, nz)
     fn, fnd, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, sl, e_n, e_pre, e_t, p_fric = \
@@ -89,7 +92,7 @@ def _contact(k, kin, prm, hist, slip, etan, dt, wrx, wry, wrz, out):
     etan[k] = e_t
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _pair_one(k, pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
               out):
     i = pi[k]
@@ -122,6 +125,10 @@ def _scatter(pi, pj, out, force, torque, fd, td):
     loss = 0.0
     fric = 0.0
     for k in range(pi.shape[0]):
+        loss += out[k, 19]
+        fric += out[k, 20]
+        if out[k, 18] == 0.0:
+            continue  # not touching: the rest of the row is not written
         i = pi[k]
         j = pj[k]
         for c in range(3):
@@ -135,8 +142,6 @@ def _scatter(pi, pj, out, force, torque, fd, td):
                 fd[j, c] += out[k, 9 + c]
                 td[j, c] += out[k, 15 + c]
         e += out[k, 18]
-        loss += out[k, 19]
-        fric += out[k, 20]
     return e, loss, fric
 
 
@@ -155,7 +160,7 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
     return _scatter(pi, pj, out, force, torque, fd, td)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
               wall_mat, table, hist, slip, etan, dt, out):
     i = wi[k]
@@ -185,6 +190,8 @@ def _wall_ser(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_
 def _wall_resultant(wi, ww, wall_u, out, wall_force):
     pw = 0.0
     for k in range(wi.shape[0]):
+        if out[k, 18] == 0.0:
+            continue
         w = ww[k]
         for c in range(3):
             wall_force[w, c] += out[k, c]  # row = force on the wall ("particle j")

@@ -25,7 +25,7 @@ from dem.walls import WallSet
 __all__ = ["Simulation", "kick"]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd):
     """v += h (F/m + g), omega += h T/I for particle i; wd[i] = work of the dissipative
     parts (fd, td) in this kick, exact for the kinetic energy: h f . (u_old + u_new)/2."""
@@ -47,6 +47,9 @@ def _kick_par(x, v, omega, force, torque, fd, td, mass, inertia, kind, g, h, dt,
             _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd)
             for c in range(3):
                 x[i, c] += dt * v[i, c]
+        if dt > 0.0:  # drift kick: the forces are used up, clear them for the next pass
+            for c in range(3):
+                force[i, c] = torque[i, c] = fd[i, c] = td[i, c] = 0.0
 
 
 @njit(cache=True)
@@ -57,12 +60,16 @@ def _kick_ser(x, v, omega, force, torque, fd, td, mass, inertia, kind, g, h, dt,
             _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd)
             for c in range(3):
                 x[i, c] += dt * v[i, c]
+        if dt > 0.0:  # drift kick: the forces are used up, clear them for the next pass
+            for c in range(3):
+                force[i, c] = torque[i, c] = fd[i, c] = td[i, c] = 0.0
 
 
 def kick(p, fd, td, g, h, drift_dt, wd) -> float:
     """Half-kick of FREE particles of `Particles` p by h [s] then drift x += drift_dt v
-    (drift_dt = 0: kick only). fd, td (n, 3): dissipative parts of force and torque; wd
-    (n,) scratch. Returns the work of the dissipative forces in this kick [J]."""
+    (drift_dt = 0: kick only; drift_dt > 0 also zeroes force, torque, fd, td after use).
+    fd, td (n, 3): dissipative parts of force and torque; wd (n,) scratch. Returns the
+    work of the dissipative forces in this kick [J]."""
     kern = _kick_par if p.n >= PARALLEL_MIN else _kick_ser
     kern(p.x, p.v, p.omega, p.force, p.torque, fd, td, p.mass, p.inertia, p.kind, g, h,
          drift_dt, wd)
@@ -119,6 +126,7 @@ class Simulation:
         self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0)
         self._fd, self._td = np.zeros((particles.n, 3)), np.zeros((particles.n, 3))
         self._wd, self._out = np.zeros(particles.n), np.empty((0, NOUT))
+        self._zeroed = False
         self._elastic, _, _, pw, pg = self.compute_forces()
         self._pw = (pw, pg)
         self._e0 = self.kinetic_energy().sum() + self._elastic
@@ -138,8 +146,10 @@ class Simulation:
         h = [nl.hist, nl.slip, nl.etan, nl.whist, nl.wslip, nl.wetan]
         if not update_history:
             h = [a.copy() for a in h]
-        for a in (p.force, p.torque, self._fd, self._td):
-            a[:] = 0.0
+        if not self._zeroed:
+            for a in (p.force, p.torque, self._fd, self._td):
+                a[:] = 0.0
+        self._zeroed = False
         m = max(len(nl.pi), len(nl.wi))
         if self._out.shape[0] < m:
             self._out = np.empty((int(1.2 * m) + 16, NOUT))
@@ -163,6 +173,7 @@ class Simulation:
             led["dissipated"] -= kick(p, self._fd, self._td, self.gravity, 0.5 * dt, dt,
                                       self._wd)
             self.walls.advance(dt)
+            self._zeroed = True  # the drift kick cleared the force arrays
             e, loss, fric, pw, pg = self.compute_forces()
             led["dissipated"] += loss - kick(p, self._fd, self._td, self.gravity, 0.5 * dt,
                                              0.0, self._wd)

@@ -21,7 +21,7 @@ __all__ = ["hertz_mindlin_force"]
 _C = 2.0 * math.sqrt(5.0 / 6.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def hertz_mindlin_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
     """Common law signature, see `dem.contact.linear.linear_force`."""
     es = prm[P_ESTAR]

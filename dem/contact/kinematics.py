@@ -17,7 +17,7 @@ from numba import njit
 __all__ = ["coulomb_tangential", "pair_kinematics", "project_history", "wall_kinematics"]
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, inline="always")
 def _relative(nx, ny, nz, vix, viy, viz, vjx, vjy, vjz, wx, wy, wz):
     """Relative contact velocity v_i - v_j + w x n with w = a_i w_i + a_j w_j."""
     rx = vix - vjx + (wy * nz - wz * ny)
@@ -27,7 +27,7 @@ def _relative(nx, ny, nz, vix, viy, viz, vjx, vjy, vjz, wx, wy, wz):
     return vn, rx - vn * nx, ry - vn * ny, rz - vn * nz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def pair_kinematics(x, v, omega, radius, mass, i, j):
     """Kinematics of pair (i, j) from arrays x, v, omega (n, 3), radius, mass (n,).
 
@@ -55,7 +55,7 @@ def pair_kinematics(x, v, omega, radius, mass, i, j):
     return nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def wall_kinematics(x, v, omega, radius, mass, i, p, wn, u):
     """Kinematics of particle i against the plane through p (3,) with unit normal wn (3,)
     pointing into the domain, moving with velocity u (3,). Wall = infinite mass and
@@ -73,14 +73,14 @@ def wall_kinematics(x, v, omega, radius, mass, i, p, wn, u):
     return nx, ny, nz, delta, ri, mass[i], vn, vtx, vty, vtz, ai, 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def project_history(sx, sy, sz, nx, ny, nz):
     """Project the tangential spring (m) onto the current tangent plane (LIGGGHTS)."""
     sn = sx * nx + sy * ny + sz * nz
     return sx - sn * nx, sy - sn * ny, sz - sn * nz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def coulomb_tangential(kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt):
     """Tangential spring-dashpot with static/dynamic Coulomb limit (seed 003 eq. 6).
 

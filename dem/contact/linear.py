@@ -17,7 +17,7 @@ from dem.contact.kinematics import coulomb_tangential
 __all__ = ["linear_force"]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def linear_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
     """Common law signature. prm: pair row (NPARAM,); delta [m]; reff [m]; meff [kg];
     vn [m/s]; vt (3 scalars) [m/s]; spring s (3 scalars) [m]; slip flag; dt [s].
