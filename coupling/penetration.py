@@ -39,7 +39,7 @@ from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 
-__all__ = ["PenetrationParameters", "CoupledPenetration"]
+__all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record"]
 
 
 @dataclass(frozen=True)
@@ -114,6 +114,83 @@ def cone_clump(radius_cone, apex_deg, shaft_length, r_grain):
     return np.column_stack([xy, np.zeros(len(xy))]), rc, cone
 
 
+def cone_record(prm, force_on_cone, on_cone, depth, step, t, **extra) -> dict:
+    """History entry: tip force on the cone part, q_c = F / cone width, sleeve friction."""
+    tip_force = float(force_on_cone[on_cone, 1].sum())
+    sleeve = float(force_on_cone[~on_cone, 1].sum())
+    embedded = max(depth - prm.cone_radius / np.tan(np.radians(prm.apex_deg) / 2), 0.0)
+    return {"step": step, "time": t, "depth": depth, "tip_force": tip_force,
+            "q_c": tip_force / (2 * prm.cone_radius), "sleeve_force": sleeve,
+            "f_s": sleeve / (2 * embedded) if embedded > 0 else 0.0, **extra}
+
+
+def _cone_and_material(prm, top):
+    """The cone clump above ``top`` and the grains' contact material."""
+    shaft = prm.depth + 3 * prm.cone_radius
+    pen, r_pen, on_cone = cone_clump(prm.cone_radius, prm.apex_deg, shaft, prm.radius)
+    tip0 = float(top + prm.radius + r_pen + 0.1 * prm.radius)
+    pen[:, 1] += tip0 + r_pen
+    # disks of unit thickness: a linear law (a line contact has no Hertz radius law that
+    # the sphere formulas would give); E only enters the time-step estimate
+    material = ContactMaterial(E=prm.kn, nu=prm.nu, density=prm.density, friction=prm.friction,
+                               restitution=prm.restitution, law="linear", kn=prm.kn,
+                               kt=prm.kt_over_kn * prm.kn)
+    return pen, r_pen, on_cone, material
+
+
+class DemPenetration:
+    """The same penetration fully as DEM: grains fill the whole chamber, held by walls
+    (no continuum objects are built). The reference for :class:`CoupledPenetration`."""
+
+    def __init__(self, prm: PenetrationParameters, log=print):
+        from dem import PlaneWall
+
+        self.prm = prm
+        rng = np.random.default_rng(prm.seed)
+        W, H = prm.chamber_width, prm.chamber_depth
+        x = hexagonal_lattice((-W / 2, -H), (W / 2, 0.0), prm.radius)
+        radius = prm.radius * (1 - prm.jitter * rng.random(len(x)))
+        Particles.spheres(x, radius, prm.density, dim=2).check_overlaps()
+        pen, r_pen, self.on_cone, material = _cone_and_material(prm, x[:, 1].max())
+        self.pen0 = pen.copy()
+        n = len(x)
+        p = Particles.spheres(np.vstack([x, pen]), np.concatenate([radius, np.full(len(pen), r_pen)]),
+                              prm.density, dim=2,
+                              kind=np.concatenate([np.zeros(n), np.full(len(pen), GHOST)]).astype(np.int8))
+        walls = [PlaneWall((-W / 2, 0, 0), (1, 0, 0)), PlaneWall((W / 2, 0, 0), (-1, 0, 0)),
+                 PlaneWall((0, -H, 0), (0, 1, 0))]
+        self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
+        self.sim = Simulation(p, material, walls=walls, gravity=(0.0, -prm.gravity, 0.0),
+                              allow_overlap=True)
+        self.sim.compute_forces(update_history=False)
+        self.clump_internal = self.sim.p.force[self.pen_index].copy()
+        t0 = time.perf_counter()
+        self.sim.step(int(np.ceil(prm.settle_time / self.sim.dt)))
+        log(f"full DEM: settled {n} grains in {time.perf_counter() - t0:.1f} s")
+        self.history: list[dict] = []
+
+    def run(self, progress=None):
+        prm, sim = self.prm, self.sim
+        p = sim.p
+        block = prm.substeps * sim.dt
+        n_steps = int(np.ceil(prm.depth / prm.velocity / block))
+        depth, t = 0.0, 0.0
+        for k in range(n_steps):
+            t0 = time.perf_counter()
+            for _ in range(prm.substeps):
+                depth += prm.velocity * sim.dt
+                p.x[self.pen_index] = self.pen0 - depth * np.array([0.0, 1.0, 0.0])
+                p.v[self.pen_index] = (0.0, -prm.velocity, 0.0)
+                sim.step(1)
+            t += block
+            f = p.force[self.pen_index] - self.clump_internal
+            self.history.append(cone_record(prm, f, self.on_cone, depth, k + 1, t,
+                                            wall_time=time.perf_counter() - t0))
+            if progress is not None:
+                progress(self.history[-1])
+        return self.history
+
+
 class CoupledPenetration:
     """Builds and runs the coupled 2D penetration (see the module docstring)."""
 
@@ -135,19 +212,11 @@ class CoupledPenetration:
         self.x_grains, self.kinds = lattice[keep], kinds[keep].astype(np.int8)
         radius = radius[keep]
         n = len(self.x_grains)
-        shaft = prm.depth + 3 * prm.cone_radius
-        pen, r_pen, self.on_cone = cone_clump(prm.cone_radius, prm.apex_deg, shaft, prm.radius)
-        self.tip0 = float(self.x_grains[:, 1].max() + prm.radius + r_pen + 0.1 * prm.radius)
-        pen[:, 1] += self.tip0 + r_pen
+        pen, r_pen, self.on_cone, self.material = _cone_and_material(prm, self.x_grains[:, 1].max())
         self.pen0 = pen.copy()
         x = np.vstack([self.x_grains, pen])
         r = np.concatenate([radius, np.full(len(pen), r_pen)])
         kind = np.concatenate([np.where(self.kinds == 1, GHOST, 0), np.full(len(pen), GHOST)]).astype(np.int8)
-        # disks of unit thickness: a linear law (a line contact has no Hertz radius law that
-        # the sphere formulas would give); E only enters the time-step estimate
-        self.material = ContactMaterial(E=prm.kn, nu=prm.nu, density=prm.density,
-                                        friction=prm.friction, restitution=prm.restitution,
-                                        law="linear", kn=prm.kn, kt=prm.kt_over_kn * prm.kn)
         Particles.spheres(self.x_grains, radius, prm.density, dim=2).check_overlaps()
         p = Particles.spheres(x, r, prm.density, dim=2, kind=kind)
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
@@ -249,15 +318,9 @@ class CoupledPenetration:
             # the ghosts continue from where the grains saw them (no jump between FE steps)
             g_prev = g_next
             f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
-            tip_force = float(f[self.on_cone, 1].sum())
-            sleeve = float(f[~self.on_cone, 1].sum())
-            embedded = max(depth - prm.cone_radius / np.tan(np.radians(prm.apex_deg) / 2), 0.0)
-            self.history.append({
-                "step": k + 1, "time": st.t, "depth": depth,
-                "tip_force": tip_force, "q_c": tip_force / (2 * prm.cone_radius),
-                "sleeve_force": sleeve, "f_s": sleeve / (2 * embedded) if embedded > 0 else 0.0,
-                "interface_mismatch": mismatch, "wall_time": time.perf_counter() - t0,
-            })
+            self.history.append(cone_record(prm, f, self.on_cone, depth, k + 1, st.t,
+                                            interface_mismatch=mismatch,
+                                            wall_time=time.perf_counter() - t0))
             if progress is not None:
                 progress(self.history[-1])
         return self.history
