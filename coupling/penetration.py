@@ -39,7 +39,12 @@ from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 
-__all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record"]
+__all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record",
+           "CouplingUnstable"]
+
+
+class CouplingUnstable(RuntimeError):
+    """The DE x FE exchange diverged (ghost motion beyond its bound, or NaN)."""
 
 
 @dataclass(frozen=True)
@@ -315,6 +320,15 @@ class CoupledPenetration:
             st.finish()
             g_new = iface.ghost_motion()
             mismatch = float(np.linalg.norm(g_new[0] - g_next[0]) / max(np.linalg.norm(g_new[0]), 1e-30))
+            ghost_max = float(np.abs(g_new[0]).max(initial=0.0))
+            # the ghosts sit in the far field of the cone: a displacement of a grain diameter
+            # there means the exchange is diverging, not that the sand flows
+            if not np.isfinite(ghost_max) or ghost_max > 2 * prm.radius:
+                raise CouplingUnstable(
+                    f"coupling unstable at depth {depth:.4g} m (FE step {k + 1}): ghost displacement "
+                    f"{ghost_max:.3g} m exceeds a grain diameter ({2 * prm.radius:.3g} m); reduce "
+                    f"coupling.relaxation ({prm.relaxation}), coupling.substeps ({prm.substeps}) or "
+                    f"penetrator.velocity ({prm.velocity} m/s)")
             # the ghosts continue from where the grains saw them (no jump between FE steps)
             g_prev = g_next
             f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only

@@ -22,7 +22,8 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
                     fields: bool = True, particles: bool = True, png: bool = True,
                     progress: bool = True, log=None) -> dict:
     """Set up, run and write a coupled penetration into ``out``; returns the results dict."""
-    from dem.errors import BlowUpError
+    from coupling.penetration import CouplingUnstable
+    from dem.errors import BlowUpError, DemError
     from dem.io import ParticleWriter, save_state
     from granfe.io import ContinuumWriter, render_png
 
@@ -62,7 +63,7 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
     t0 = time.perf_counter()
     try:
         history = cpt.run(progress=on_step)
-    except (BlowUpError, FloatingPointError, ValueError) as err:
+    except (BlowUpError, DemError, CouplingUnstable, FloatingPointError, ValueError) as err:
         where = out / "last_good"
         cpt.problem.write_checkpoint(where)
         if comm.rank == 0:
