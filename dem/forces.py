@@ -165,7 +165,7 @@ def _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wa
               wall_mat, table, hist, slip, etan, dt, out):
     i = wi[k]
     w = ww[k]
-    kin = wall_kinematics(x, v, omega, radius, mass, i, wall_p[w], wall_n[w], wall_u[w])
+    kin = wall_kinematics(x, v, omega, radius, mass, i, wall_p, wall_n, wall_u, w)
     _contact(k, kin, table[material[i], wall_mat[w]], hist, slip, etan, dt,
              omega[i, 0], omega[i, 1], omega[i, 2], out[k])
 

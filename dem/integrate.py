@@ -16,13 +16,15 @@ from numba import njit, prange
 
 from dem.contact import ContactMaterial, pair_table
 from dem.errors import BlowUpError, DomainError
-from dem.forces import NOUT, PARALLEL_MIN, pair_forces, wall_forces
+from dem.forces import NOUT, pair_forces, wall_forces
 from dem.neighbours import NeighbourList
 from dem.state import FREE, GHOST
 from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
 from dem.walls import WallSet
 
 __all__ = ["Simulation", "kick"]
+
+KICK_PARALLEL_MIN = 1_000_000  # particles; below this the kicks run on one thread
 
 
 @njit(cache=True, inline="always")
@@ -70,7 +72,9 @@ def kick(p, fd, td, g, h, drift_dt, wd) -> float:
     (drift_dt = 0: kick only; drift_dt > 0 also zeroes force, torque, fd, td after use).
     fd, td (n, 3): dissipative parts of force and torque; wd (n,) scratch. Returns the
     work of the dissipative forces in this kick [J]."""
-    kern = _kick_par if p.n >= PARALLEL_MIN else _kick_ser
+    # serial on purpose: a kick is memory-bound and a parallel region costs a thread
+    # rendezvous, which on a loaded 2-core machine is worth more than the kick itself
+    kern = _kick_par if p.n >= KICK_PARALLEL_MIN else _kick_ser
     kern(p.x, p.v, p.omega, p.force, p.torque, fd, td, p.mass, p.inertia, p.kind, g, h,
          drift_dt, wd)
     return float(wd.sum())

@@ -141,15 +141,16 @@ def carry_history(old_keys, new_keys, *arrays):
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
 def _max_disp2(x, x0):
-    d2 = np.empty(x.shape[0])
-    for i in prange(x.shape[0]):
+    """Largest squared displacement [m^2] (serial: cheaper than a thread rendezvous)."""
+    d2 = 0.0
+    for i in range(x.shape[0]):
         a = x[i, 0] - x0[i, 0]
         b = x[i, 1] - x0[i, 1]
         c = x[i, 2] - x0[i, 2]
-        d2[i] = a * a + b * b + c * c
-    return d2.max() if x.shape[0] else 0.0
+        d2 = max(d2, a * a + b * b + c * c)
+    return d2
 
 
 class NeighbourList:
@@ -174,10 +175,7 @@ class NeighbourList:
     def needs_rebuild(self, x, wall_p) -> bool:
         if self._x0 is None:
             return True
-        if x.shape[0] >= 4096:
-            d = np.sqrt(_max_disp2(x, self._x0))
-        else:  # thread start-up would cost more than the work
-            d = np.sqrt(((x - self._x0) ** 2).sum(axis=1).max(initial=0.0))
+        d = np.sqrt(_max_disp2(x, self._x0))
         if wall_p.shape[0]:
             d += np.sqrt(((wall_p - self._wp0) ** 2).sum(axis=1).max())
         return d > 0.5 * self.skin

@@ -56,20 +56,24 @@ def pair_kinematics(x, v, omega, radius, mass, i, j):
 
 
 @njit(cache=True, inline="always")
-def wall_kinematics(x, v, omega, radius, mass, i, p, wn, u):
-    """Kinematics of particle i against the plane through p (3,) with unit normal wn (3,)
-    pointing into the domain, moving with velocity u (3,). Wall = infinite mass and
-    radius: reff = r_i, meff = m_i (LIGGGHTS/LAMMPS). Same return layout as
-    `pair_kinematics` (arm_j = 0)."""
-    dist = ((x[i, 0] - p[0]) * wn[0] + (x[i, 1] - p[1]) * wn[1] + (x[i, 2] - p[2]) * wn[2])
+def wall_kinematics(x, v, omega, radius, mass, i, wall_p, wall_n, wall_u, w):
+    """Kinematics of particle i against plane w through wall_p[w] (3,) with unit normal
+    wall_n[w] pointing into the domain, moving with velocity wall_u[w] [m/s]. Wall =
+    infinite mass and radius: reff = r_i, meff = m_i (LIGGGHTS/LAMMPS). Same return layout
+    as `pair_kinematics` (arm_j = 0). Row indices, not row slices, are passed: slices would
+    cost reference counting per call."""
+    wx, wy, wz = wall_n[w, 0], wall_n[w, 1], wall_n[w, 2]
+    dist = ((x[i, 0] - wall_p[w, 0]) * wx + (x[i, 1] - wall_p[w, 1]) * wy
+            + (x[i, 2] - wall_p[w, 2]) * wz)
     ri = radius[i]
     delta = ri - dist
     if delta <= 0.0:
         return 0.0, 0.0, 0.0, delta, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    nx, ny, nz = -wn[0], -wn[1], -wn[2]
+    nx, ny, nz = -wx, -wy, -wz
     ai = ri - 0.5 * delta
-    vn, vtx, vty, vtz = _relative(nx, ny, nz, v[i, 0], v[i, 1], v[i, 2], u[0], u[1], u[2],
-                                  ai * omega[i, 0], ai * omega[i, 1], ai * omega[i, 2])
+    vn, vtx, vty, vtz = _relative(nx, ny, nz, v[i, 0], v[i, 1], v[i, 2], wall_u[w, 0],
+                                  wall_u[w, 1], wall_u[w, 2], ai * omega[i, 0],
+                                  ai * omega[i, 1], ai * omega[i, 2])
     return nx, ny, nz, delta, ri, mass[i], vn, vtx, vty, vtz, ai, 0.0
 
 

@@ -111,7 +111,7 @@ SCRIPT = textwrap.dedent("""
     sim.step(60)
     np.save(sys.argv[2], np.concatenate([p.x, p.v, p.omega, p.force]))
     kernels = [forces._pair_par, forces._wall_ser, forces._scatter, forces._wall_resultant,
-               integrate._kick_par, neighbours._pairs]
+               integrate._kick_ser, neighbours._pairs]
     print(sum(sum(k.stats.cache_misses.values()) for k in kernels),
           min(sum(k.stats.cache_hits.values()) for k in kernels), len(sim.nl.pi))
 """)
