@@ -134,10 +134,11 @@ def bar_plot(res, path):
     labels, w = [], 0.2
     for k, n in enumerate(res["N"]):
         r = res["runs"][str(n)]
+        src = "" if r["liggghts"]["1"]["source"] == "run here" else " (RESULTS.md)"
         bars = [("dem 1 thread", r["dem"]["1"]["mps_median"]),
                 ("dem 2 threads", r["dem"]["2"]["mps_median"]),
-                ("LIGGGHTS 1 proc", r["liggghts"]["1"]["mps_median"]),
-                ("LIGGGHTS 2 procs", r["liggghts"]["2"]["mps_median"])]
+                ("LIGGGHTS 1 proc" + src, r["liggghts"]["1"]["mps_median"]),
+                ("LIGGGHTS 2 procs" + src, r["liggghts"]["2"]["mps_median"])]
         for b, (lab, val) in enumerate(bars):
             ax.bar(k + (b - 1.5) * w, val, w, color=f"C{b}", label=lab if k == 0 else None)
             ax.text(k + (b - 1.5) * w, val, f"{val:.1f}", ha="center", va="bottom", fontsize=8)

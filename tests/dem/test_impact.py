@@ -91,3 +91,23 @@ def test_oblique_sticking_regime():
     assert wy == pytest.approx(2.5 * jt / R, rel=1e-2)  # angular impulse of the same jt
     assert jt == pytest.approx(2 / 7 * vt, rel=0.2)  # rigid no-slip value, up to the
     # tangential elastic rebound of the Mindlin spring
+
+
+def test_2d_disk_sliding_on_wall():
+    """A disk (unit thickness, I = m r^2 / 2) sliding through an impact on the floor y = 0:
+    tangential impulse mu x normal impulse, omega_z = -2 jt / R; motion stays in plane."""
+    mu, vn = 0.3, 1.0
+    mat = dem.ContactMaterial(E=E, nu=NU, density=RHO, friction=mu, restitution=0.5,
+                              limit_force=True)
+    v0 = np.array([[3.0 * vn, -vn, 0.0]])
+    p = dem.Particles.spheres([[0, R + 1e-7]], R, RHO, dim=2, v=v0)
+    sim = dem.Simulation(p, mat, dem.box_walls((-1, 0, 0), (1, 1, 0), dim=2))
+    while not (p.v[0, 1] > 0 and p.x[0, 1] > R + 1e-7):
+        sim.step(1)
+    jn, jt = p.v[0, 1] + vn, 3.0 * vn - p.v[0, 0]
+    assert jt == pytest.approx(mu * jn, rel=1e-2)
+    # torque arm R - delta/2: a unit-thickness disk is ~750x heavier than the sphere, so
+    # delta_max ~ 7 % of R here and the mean arm is ~1.5 % short of R
+    assert p.omega[0, 2] == pytest.approx(-2 * jt / R, rel=3e-2)
+    assert abs(p.omega[0, 2]) < 2 * jt / R
+    assert p.x[0, 2] == 0 and p.v[0, 2] == 0 and (p.omega[0, :2] == 0).all()
