@@ -56,7 +56,7 @@ class PenetrationParameters:
     window_half_width: float = 0.04
     window_depth: float = 0.08
     ghost_width: float = 2.5          # grain diameters
-    handshake: float = 1.0            # elements
+    handshake: float = 2.0            # elements (1 is at the edge of stability)
     element_size_window: float = 0.008
     element_size_far: float = 0.04
     radius: float = 1.5e-3
@@ -321,12 +321,13 @@ class CoupledPenetration:
             g_new = iface.ghost_motion()
             mismatch = float(np.linalg.norm(g_new[0] - g_next[0]) / max(np.linalg.norm(g_new[0]), 1e-30))
             ghost_max = float(np.abs(g_new[0]).max(initial=0.0))
-            # the ghosts sit in the far field of the cone: a displacement of a grain diameter
-            # there means the exchange is diverging, not that the sand flows
-            if not np.isfinite(ghost_max) or ghost_max > 2 * prm.radius:
+            # the ghosts sit in the far field of the cone: moving more than twice as far as the
+            # cone has pushed means the exchange is diverging, not that the sand flows
+            bound = 2 * depth + 2 * prm.radius
+            if not np.isfinite(ghost_max) or ghost_max > bound:
                 raise CouplingUnstable(
                     f"coupling unstable at depth {depth:.4g} m (FE step {k + 1}): ghost displacement "
-                    f"{ghost_max:.3g} m exceeds a grain diameter ({2 * prm.radius:.3g} m); reduce "
+                    f"{ghost_max:.3g} m exceeds twice the cone's travel ({bound:.3g} m); reduce "
                     f"coupling.relaxation ({prm.relaxation}), coupling.substeps ({prm.substeps}) or "
                     f"penetrator.velocity ({prm.velocity} m/s)")
             # the ghosts continue from where the grains saw them (no jump between FE steps)

@@ -222,7 +222,7 @@ class PenetrationWindow:
     half_width: float = 0.04
     depth: float = 0.08
     ghost_width: float = 2.5
-    handshake: float = 1.0
+    handshake: float = 2.0
 
 
 @dataclass(frozen=True)
