@@ -5,6 +5,7 @@ Public API: `Particles` (FREE, GHOST, FIXED kinds), `ContactMaterial`, `PlaneWal
 """
 
 from dem.contact import LAWS, ContactMaterial
+from dem.control import ServoWall, relax, unbalanced_force_ratio
 from dem.errors import (BlowUpError, DemError, DomainError, MaterialError, OverlapError,
                         TimeStepError)
 from dem.integrate import Simulation
@@ -13,7 +14,7 @@ from dem.state import FIXED, FREE, GHOST, Particles
 from dem.timestep import critical_dt, hertz_dt, rayleigh_dt
 from dem.walls import PlaneWall, WallSet, box_walls
 
-__all__ = ["FIXED", "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
+__all__ = ["ServoWall", "relax", "unbalanced_force_ratio", "FIXED", "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
            "DomainError", "MaterialError", "NeighbourList", "OverlapError", "Particles",
            "PlaneWall", "Simulation", "TimeStepError", "WallSet", "box_walls", "build_pairs",
            "critical_dt", "hertz_dt", "rayleigh_dt"]
