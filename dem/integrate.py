@@ -192,6 +192,26 @@ class Simulation:
         if self.nsteps % self.check_every:
             self._check()
 
+    def contact_forces(self, skip_ghost_pairs: bool = True):
+        """Touching pairs (m, 2) and the force on i by j (m, 3) [N] now.
+
+        The pair loop is evaluated again on copies of the contact history (the run keeps
+        no per-contact forces), so calling this changes nothing. Pairs of two GHOST
+        particles (a rigid clump's own contacts) are left out by default.
+        """
+        from dem.forces import NOUT, pair_forces
+
+        p, nl = self.p, self.nl
+        out = np.zeros((max(len(nl.pi), 1), NOUT))
+        scratch = [np.zeros_like(p.force) for _ in range(4)]
+        pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material, self.table,
+                    nl.hist.copy(), nl.slip.copy(), nl.etan.copy(), self.dt, out, *scratch)
+        d = np.linalg.norm(p.x[nl.pj] - p.x[nl.pi], axis=1)
+        keep = d < p.radius[nl.pi] + p.radius[nl.pj]
+        if skip_ghost_pairs:
+            keep &= ~((p.kind[nl.pi] == GHOST) & (p.kind[nl.pj] == GHOST))
+        return np.stack([nl.pi[keep], nl.pj[keep]], axis=1), -out[: len(nl.pi)][keep, :3]
+
     # ---------------------------------------------------------------- energy ledger
     def kinetic_energy(self) -> np.ndarray:
         """(translational, rotational) kinetic energy of FREE particles [J]."""

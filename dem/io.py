@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ParticleWriter", "load_state", "read_vtu", "render_png", "save_state", "write_vtu"]
+__all__ = ["ParticleWriter", "load_state", "read_contact_frame", "read_vtu", "render_png", "save_state",
+           "write_contact_frame", "write_vtu"]
 
 
 def _check_arrays(x, radius, point_data) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -161,3 +162,23 @@ def render_png(path, x, radius, scalars=None, *, scalar_name: str = "value",
     plotter.screenshot(str(path))
     plotter.close()
     return path
+
+
+def write_contact_frame(path, sim, step: int | None = None) -> Path:
+    """Save what the stress measures need from a `dem.Simulation` now: positions,
+    velocities, radii, masses, touching pairs and their forces (force on i by j), time."""
+    pairs, force = sim.contact_forces()
+    p = sim.p
+    return save_state(path, x=p.x, v=p.v, radius=p.radius, mass=p.mass, kind=p.kind,
+                      pairs=pairs, force=force, t=np.array(sim.time),
+                      step=np.array(sim.nsteps if step is None else step))
+
+
+def read_contact_frame(path) -> dict:
+    """A frame written by `write_contact_frame` (arrays; ``t`` and ``step`` as scalars)."""
+    data = load_state(path)
+    missing = {"x", "v", "radius", "mass", "pairs", "force", "t", "step"} - set(data)
+    if missing:
+        raise ValueError(f"{path} is not a contact frame: missing {sorted(missing)}")
+    data["t"], data["step"] = float(data["t"]), int(data["step"])
+    return data

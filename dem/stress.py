@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["AveragingDomain", "EmptyRVEError", "MicromorphicStress", "contact_points",
+__all__ = ["AveragingDomain", "EmptyRVEError", "MicromorphicStress", "contact_points", "record_frames",
            "couple_measures", "love_weber_stress", "mean_stress", "micromorphic_stress",
            "octahedral_shear", "StressRecorder"]
 
@@ -412,3 +412,16 @@ class StressRecorder:
         fig.tight_layout()
         fig.savefig(path, dpi=110)
         plt.close(fig)
+
+
+def record_frames(recorder: StressRecorder, paths) -> list:
+    """Feed saved contact frames (`dem.io.write_contact_frame`) to a recorder, in order;
+    the stress measures on a finished run. Returns the recorder's results."""
+    from dem.io import read_contact_frame
+
+    results = []
+    for path in paths:
+        f = read_contact_frame(path)
+        results.append(recorder(f["step"], f["t"], f["x"], f["radius"], f["pairs"], f["force"],
+                                f["mass"], v=f["v"]))
+    return results

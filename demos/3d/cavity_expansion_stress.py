@@ -26,8 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dem import GHOST, ContactMaterial, Particles, Simulation, box_walls
-from dem.forces import NOUT, pair_forces
+from dem import ContactMaterial, Particles, Simulation, box_walls
 from dem.io import ParticleWriter, render_png
 from dem.packing import lattice_packing
 from dem.stress import AveragingDomain, StressRecorder
@@ -57,21 +56,6 @@ parser.add_argument("--out", type=Path, default=Path("output/cavity_expansion_st
 args = parser.parse_args()
 args.out.mkdir(parents=True, exist_ok=True)
 g = np.array([0.0, 0.0, -9.81])
-
-
-def contact_forces(sim):
-    """Touching pairs (m, 2), force on i by j (m, 3) [N]: the engine's pair loop evaluated
-    again on copies of the contact history (it keeps no per-contact forces)."""
-    p, nl = sim.p, sim.nl
-    out = np.zeros((max(len(nl.pi), 1), NOUT))
-    scratch = [np.zeros_like(p.force) for _ in range(4)]
-    pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material, sim.table,
-                nl.hist.copy(), nl.slip.copy(), nl.etan.copy(), sim.dt, out, *scratch)
-    d = np.linalg.norm(p.x[nl.pj] - p.x[nl.pi], axis=1)
-    touch = d < p.radius[nl.pi] + p.radius[nl.pj]
-    both_ghost = (p.kind[nl.pi] == GHOST) & (p.kind[nl.pj] == GHOST)
-    keep = touch & ~both_ghost  # the pile's own clump contacts are not grain contacts
-    return np.stack([nl.pi[keep], nl.pj[keep]], axis=1), -out[:len(nl.pi)][keep, :3]
 
 
 def restitution(zeta):
@@ -126,7 +110,7 @@ n_steps = int(args.duration / sim.dt)
 height = []
 for step in range(n_steps + 1):
     if step % args.record_every == 0:
-        pairs, force = contact_forces(sim)
+        pairs, force = sim.contact_forces()
         rec(step, sim.time, p.x, p.radius, pairs, force, p.mass, v=p.v)
         height.append(float(p.x[ids, 2].mean()))
     if step % (n_steps // 5) == 0:
