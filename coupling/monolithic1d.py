@@ -19,6 +19,11 @@ with ``S`` selecting the particle dofs Q from X, ``Fw_DE`` the glued-string inte
   Weights: FE cells fully under particles (B^h^) ``q^k``, the transition cell (B^h~)
   ``q^ + (1 - q^) q^k`` (volume fraction q^, eq. 119), pure FE 1; DE contacts inside
   the FE span ``1 - q^k``, others 1. These combination rules are our reading of §2.4.4.
+* Axial waves (eq. 108-121, linear): :func:`axial_overlap` couples the rod's axial field
+  (left) with a linear :class:`dem.glued.SpringString` (right) through an overlap of prescribed
+  FE nodes; kinetic (r) and potential (q) energy shares are segment means of one partition
+  of unity, and :class:`AverageAcceleration` integrates ``M X'' + K X = 0`` conserving the
+  discrete energy.
 """
 
 from __future__ import annotations
@@ -28,12 +33,15 @@ import dolfinx_solver  # noqa: F401
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from coupling.operators import FieldBasis
-from dem.glued import GluedString, NewtonReport, newton
+from dem.glued import GluedString, NewtonReport, SpringString, newton
 from granfe.rod1d import Rod1D
 
-__all__ = ["Coupled1D", "full_overlap", "partial_overlap", "rod_basis"]
+__all__ = ["AverageAcceleration", "AxialOverlap1D", "Coupled1D", "axial_overlap", "full_overlap",
+           "partial_overlap", "rod_axial", "rod_basis"]
 
 FIELDS = ("u", "v", "theta")
 
@@ -180,3 +188,164 @@ def partial_overlap(string: GluedString, rod: Rod1D, q_hat: float,
     w_de = np.where((xc >= x_rod)[:, None], 1.0 - q[None, :], 1.0)
     # the clamp is removed from X (not in free_d) and every particle is free: nothing held
     return Coupled1D(string, rod, T, S, w_de, np.array([], dtype=int))
+
+
+# ---- axial waves through the overlap (eq. 108-121, linear, one field) ---------------------------
+
+WEIGHTINGS = ("ramp", "volume", "volume_equal")
+REGIONS = ("fe", "overlap", "de")
+
+
+def particle_share(lo, hi, s0: float, s1: float) -> np.ndarray:
+    """Mean over [lo, hi] of the particles' energy share g(s): 0 for s < s0, linear up to 1 at
+    s1, 1 beyond (a step at s0 when s1 == s0). The FE share is 1 - g, so every segment's
+    mass and stiffness are split exactly (seed 001 eq. 110-121, r = q)."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    width = s1 - s0
+
+    def primitive(s):
+        if width > 0:
+            return np.where(s < s0, 0.0, np.where(s <= s1, (s - s0) ** 2 / (2 * width),
+                                                  width / 2 + s - s1))
+        return np.maximum(s - s0, 0.0)
+
+    return (primitive(hi) - primitive(lo)) / (hi - lo)
+
+
+@dataclass
+class AxialOverlap1D:
+    """Linear axial dynamics ``M X'' + K X = 0`` of a rod overlapped with a spring string.
+
+    X = (Q (n particles), D_free); FE axial dofs ``D = T X`` with the overlap nodes prescribed
+    by the L2 projection of the particles under the rod (eq. 79-90). ``M``, ``K`` (n_X, n_X)
+    are symmetric; ``parts[region] = (M_r, K_r)`` split them by where each cell, spring and
+    particle sits: "fe" (x < x_a), "overlap" [x_a, x_b], "de" (x > x_b).
+
+    Attributes: rod, string, T (n_u, n_X), M, K, parts, x_a (first particle), x_b (rod end),
+    u_x (n_u,) abscissae of the rod's axial dofs, free (FE dof positions in X).
+    """
+
+    rod: Rod1D
+    string: SpringString
+    T: sp.csr_matrix
+    M: sp.csr_matrix
+    K: sp.csr_matrix
+    parts: dict
+    x_a: float
+    x_b: float
+    u_x: np.ndarray
+    free: np.ndarray
+
+    def energy(self, X: np.ndarray, V: np.ndarray, region: str | None = None) -> float:
+        """Kinetic + potential energy [J] of the whole system or of one region."""
+        M, K = (self.M, self.K) if region is None else self.parts[region]
+        return float(0.5 * V @ (M @ V) + 0.5 * X @ (K @ X))
+
+    def state(self, u, v) -> tuple[np.ndarray, np.ndarray]:
+        """(X, V) from FE-only displacement and velocity fields u(x), v(x) (particles at rest)."""
+        X, V = np.zeros(self.M.shape[0]), np.zeros(self.M.shape[0])
+        xf = self.u_x[self.free]
+        X[self.string.n:], V[self.string.n:] = u(xf), v(xf)
+        return X, V
+
+
+def rod_axial(rod: Rod1D, stiffness_share=None, mass_share=None, region=None):
+    """(K_u, M_u, dofs) of the rod's axial field: stiffness and mass blocks (scipy CSR) with
+    cell weights ``stiffness_share(x_mid)``, ``mass_share(x_mid)`` (default 1) times the
+    indicator ``region(x_mid)``. Serial."""
+    one = lambda xm: np.ones_like(xm)  # noqa: E731
+    region = one if region is None else region
+    wk, wm = (one if f is None else f for f in (stiffness_share, mass_share))
+    rod.set_cell_weights("u", lambda xm: wk(xm) * region(xm))
+    dofs = rod.field_dofs["u"][0]
+    K, M = rod.K, rod.mass(lambda xm: wm(xm) * region(xm))
+    return K[dofs][:, dofs].tocsr(), M[dofs][:, dofs].tocsr(), dofs
+
+
+def axial_overlap(rod: Rod1D, string: SpringString, weighting: str = "ramp") -> AxialOverlap1D:
+    """Couple the rod's axial field (left, ends at x_b) and the string (starts at x_a <= x_b).
+
+    ``weighting`` sets the particles' shares of kinetic (r) and potential (q) energy, the FE
+    taking the rest of each cell:
+
+    * "ramp": both rise linearly from 0 at x_a to 1 at x_b (a step at x_a for x_a == x_b:
+      the abrupt interface);
+    * "volume": volume fractions (seed eq. 113, 119), the mass share from the particle
+      segments ``[x - d/2, x + d/2]`` and the stiffness share from the springs between
+      centres (the contact density the seed points to), both steps;
+    * "volume_equal": the seed's simple choice q = r = particle volume fraction; the FE cell
+      holding the first particle then loses stiffness the springs do not replace (a soft
+      spot of d / 2).
+
+    Serial.
+    """
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    x_a, x_b, d = string.x0, rod.x0 + rod.length, string.spacing
+    if not rod.x0 < x_a <= x_b + 1e-12 < string.x[-1]:
+        raise ValueError(f"the string must start inside the rod and end beyond it: rod "
+                         f"[{rod.x0}, {x_b}], string [{x_a}, {string.x[-1]}]")
+    ramp_k = ramp_m = (x_a, x_b)
+    if weighting != "ramp":
+        ramp_m = (x_a - d / 2, x_a - d / 2)
+        ramp_k = ramp_m if weighting == "volume_equal" else (x_a, x_a)
+    h = rod.length / rod.mesh.topology.index_map(1).size_local
+    k_fe = lambda xm: 1.0 - particle_share(xm - h / 2, xm + h / 2, *ramp_k)  # noqa: E731
+    m_fe = lambda xm: 1.0 - particle_share(xm - h / 2, xm + h / 2, *ramp_m)  # noqa: E731
+    xp = string.x
+    p_share = particle_share(xp - d / 2, xp + d / 2, *ramp_m)
+    xs = 0.5 * (xp[:-1] + xp[1:])
+    s_share = particle_share(xp[:-1], xp[1:], *ramp_k)
+
+    dofs = rod.field_dofs["u"][0]
+    ux = rod.field_dofs["u"][1]
+    eps = 1e-9 * h
+    pres = np.flatnonzero(ux >= x_a - eps)
+    free = np.flatnonzero(ux < x_a - eps)
+    under = np.flatnonzero(xp <= x_b + eps)
+    N = FieldBasis.build(rod.V, xp[under, None], sub=0).local.toarray()[:, dofs]
+    Np, Nd = N[:, pres], N[:, free]
+    P = np.linalg.solve(Np.T @ Np, Np.T)  # eq. 79-90
+    n = string.n
+    T = np.zeros((ux.size, n + free.size))
+    T[free, n + np.arange(free.size)] = 1.0
+    T[np.ix_(pres, under)] = P
+    T[np.ix_(pres, n + np.arange(free.size))] = -P @ Nd
+    T = sp.csr_matrix(T)
+    S = sp.hstack([sp.eye(n), sp.csr_matrix((n, free.size))]).tocsr()
+
+    bins = {"fe": lambda x: x < x_a - eps, "overlap": lambda x: (x >= x_a - eps) & (x <= x_b + eps),
+            "de": lambda x: x > x_b + eps}
+    parts, M, K = {}, 0, 0
+    for name, inside in bins.items():
+        Kf, Mf, _ = rod_axial(rod, k_fe, m_fe, lambda xm, f=inside: f(xm).astype(float))
+        Md = string.mass_matrix(p_share * inside(xp))
+        Kd = string.stiffness_matrix(s_share * inside(xs))
+        parts[name] = (S.T @ Md @ S + T.T @ Mf @ T, S.T @ Kd @ S + T.T @ Kf @ T)
+        M, K = M + parts[name][0], K + parts[name][1]
+    return AxialOverlap1D(rod, string, T, M.tocsr(), K.tocsr(), parts, x_a, x_b, ux, free)
+
+
+class AverageAcceleration:
+    """Newmark average acceleration (beta = 1/4, gamma = 1/2) for ``M X'' + K X = 0``.
+
+    Unconditionally stable, no numerical damping, and it conserves
+    ``V^T M V / 2 + X^T K X / 2`` exactly for symmetric M, K (to the solver's round-off).
+    The effective matrix ``M + dt^2 / 4 K`` is factorised once.
+    """
+
+    def __init__(self, M: sp.spmatrix, K: sp.spmatrix, dt: float):
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"AverageAcceleration.dt must be > 0 in s, got {dt!r}")
+        self.K, self.dt = K.tocsr(), dt
+        self._lu = spla.splu((M + dt**2 / 4 * K).tocsc())
+        self._M_lu = spla.splu(M.tocsc())
+
+    def initial_acceleration(self, X: np.ndarray) -> np.ndarray:
+        return -self._M_lu.solve(self.K @ X)
+
+    def step(self, X, V, A):
+        """(X, V, A) one step later."""
+        dt = self.dt
+        A1 = self._lu.solve(-(self.K @ (X + dt * V + dt**2 / 4 * A)))
+        return X + dt * V + dt**2 / 4 * (A + A1), V + dt / 2 * (A + A1), A1

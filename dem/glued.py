@@ -31,8 +31,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
-__all__ = ["GluedLaw", "GluedString", "NewtonDidNotConverge", "NewtonReport", "newton"]
+__all__ = ["GluedLaw", "GluedString", "NewtonDidNotConverge", "NewtonReport", "SpringString",
+           "newton"]
 
 log = logging.getLogger(__name__)
 
@@ -163,6 +165,60 @@ class GluedString:
         """
         return newton(lambda q: (self.f_int(q) - f_ext, self.tangent(q)), q0, fixed,
                       scale=max(np.abs(f_ext).max(), 1.0), **kw)
+
+
+@dataclass(frozen=True)
+class SpringString:
+    """Axial string of n particles joined by linear springs, for waves (linear dynamics).
+
+    The long-wave speed is ``spacing * sqrt(stiffness / mass)``; with
+    ``stiffness = C A / d`` and ``mass = rho A d`` it equals the rod's ``sqrt(C / rho)``.
+    Dofs: the axial displacement u_i [m] of each particle, centres at ``x0 + spacing i``.
+
+    Attributes: n (>= 2), spacing d [m], stiffness k [N/m], mass m [kg] (all > 0), x0 [m].
+    """
+
+    n: int
+    spacing: float
+    stiffness: float
+    mass: float
+    x0: float = 0.0
+
+    def __post_init__(self):
+        if int(self.n) != self.n or self.n < 2:
+            raise ValueError(f"SpringString.n must be an integer >= 2, got {self.n!r}")
+        for name in ("spacing", "stiffness", "mass"):
+            val = getattr(self, name)
+            if not (np.isfinite(val) and val > 0):
+                raise ValueError(f"SpringString.{name} must be finite and > 0, got {val!r}")
+
+    @property
+    def x(self) -> np.ndarray:
+        """(n,) particle centres [m]."""
+        return self.x0 + self.spacing * np.arange(self.n)
+
+    @property
+    def wave_speed(self) -> float:
+        """Long-wave (continuum-limit) speed [m/s]."""
+        return self.spacing * np.sqrt(self.stiffness / self.mass)
+
+    def stiffness_matrix(self, weights: np.ndarray | None = None) -> sp.csr_matrix:
+        """K (n, n) with an optional potential-energy share per spring (n - 1,)."""
+        w = np.ones(self.n - 1) if weights is None else np.asarray(weights, dtype=float)
+        if w.shape != (self.n - 1,):
+            raise ValueError(f"spring weights must have shape ({self.n - 1},), got {w.shape}")
+        k = self.stiffness * w
+        main = np.zeros(self.n)
+        main[:-1] += k
+        main[1:] += k
+        return sp.diags([main, -k, -k], [0, -1, 1], format="csr")
+
+    def mass_matrix(self, weights: np.ndarray | None = None) -> sp.csr_matrix:
+        """Diagonal M (n, n) with an optional kinetic-energy share per particle (n,)."""
+        w = np.ones(self.n) if weights is None else np.asarray(weights, dtype=float)
+        if w.shape != (self.n,):
+            raise ValueError(f"mass weights must have shape ({self.n},), got {w.shape}")
+        return sp.diags(self.mass * w, format="csr")
 
 
 class NewtonDidNotConverge(RuntimeError):

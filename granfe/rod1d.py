@@ -214,7 +214,31 @@ class Rod1D:
         """
         if self.comm.size > 1:
             raise RuntimeError("Rod1D.stiffness gathers a serial scipy matrix: run on one rank")
-        A = dolfinx.fem.petsc.assemble_matrix(self.a)
+        return self._to_scipy(self.a)
+
+    def mass(self, weight=None) -> sp.csr_matrix:
+        """Consistent mass (n_dofs, n_dofs) over the local dof numbering (serial), eq. 92/112.
+
+        Kinetic energy density ``rho (A u'^2 + A v'^2 + (I + A j) theta'^2) / 2`` from the
+        kinematics of eq. 8, with the material's ``rho`` and micro-inertia ``j``.
+        ``weight``: a callable of the cell midpoint x [m] -> share, or a number: the
+        continuum's share r of the kinetic energy of each cell (eq. 112-113).
+        """
+        if self.comm.size > 1:
+            raise RuntimeError("Rod1D.mass gathers a serial scipy matrix: run on one rank")
+        r = fem.Function(self.W)
+        xm = self.W.tabulate_dof_coordinates()[:, 0]
+        r.x.array[:] = 1.0 if weight is None else (weight(xm) if callable(weight) else weight)
+        u, v, th = ufl.TrialFunctions(self.V)
+        du, dv, dth = ufl.TestFunctions(self.V)
+        A, rho = self._A, self.material.rho
+        inertia = self._I + A * self.material.j
+        form = r * rho * (A * u * du + A * v * dv + inertia * th * dth) * ufl.dx
+        return self._to_scipy(fem.form(form))
+
+    @staticmethod
+    def _to_scipy(a: fem.Form) -> sp.csr_matrix:
+        A = dolfinx.fem.petsc.assemble_matrix(a)
         A.assemble()
         indptr, indices, data = A.getValuesCSR()
         K = sp.csr_matrix((data, indices, indptr), shape=A.getSize())
