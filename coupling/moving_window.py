@@ -1,0 +1,630 @@
+"""The DE window follows the penetrator (seed 000 Fig. 3): when the tip comes within a given
+distance of the window's bottom, the window moves down, continuum ahead of the tip becomes
+grains and grains far behind become continuum again.
+
+One move (:meth:`MovingWindowPenetration.move`), all in the FE's reference configuration
+(small strain: the FE basis is evaluated at reference positions ``X``, a grain sits at
+``x = X + u(X)``):
+
+1. the window Box's bottom goes down by ``step``; its top follows only when the window would
+   be taller than ``max_height`` (a window that grows, then travels);
+2. surviving grains get reference positions ``X = x - u(X)`` (fixed point: a ghost stays
+   exactly where it is, a free grain's displacement ``x - X`` is the FE displacement there,
+   so the first projection after the move returns the FE's own values);
+3. the newly covered region (inside the new window + ghost band, outside the old one) is
+   filled with a jittered lattice (hexagonal in 2D, fcc in 3D) at the packing fraction
+   measured in the current window away from the cone, radii from the same distribution;
+   each new grain is placed at ``X + u(X)`` with the FE velocity and spin ``d phi / dt``;
+   new grains overlapping old ones by more than half a radius are dropped, the rest are
+   pushed apart geometrically with the old grains held;
+4. grains now outside window + band are removed: far behind the tip their motion is the
+   continuum's (the FE underneath carries it from here on; the cone's shaft then passes
+   through continuum without contact, so the sleeve friction above the window is lost);
+5. kinds are re-assigned from the new window, the DEM ``Simulation`` is rebuilt with the
+   contact history of surviving pairs carried over, the ``CouplingInterface`` is rebuilt
+   (its Dirichlet condition replaced, prescribed values taken from the current FE state)
+   and the time stepper is rebuilt with the FE state, velocity and acceleration copied;
+6. the grains settle for ``settle_steps`` DEM steps with the ghosts held at the FE
+   positions and the cone paused, so that contact forces form in the new grains and carry
+   the weight above them. The FE models the increment from the geostatic state (no gravity),
+   so the new grains' Love-Weber stress is compared with the FE stress plus the geostatic
+   overburden ``rho g h`` (and with the grains just above): ``move_records`` holds both.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import dolfinx_solver  # noqa: F401
+
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+
+from coupling.interface import CouplingInterface
+from coupling.locate import owner_ranks
+from coupling.operators import FieldBasis
+from coupling.penetration import (CoupledPenetration, CouplingUnstable, PenetrationParameters,
+                                  cone_clump, cone_record)
+from coupling.regions import Box, CouplingRegions
+from dem import GHOST, Particles, Simulation, build_pairs
+from dem.neighbours import carry_history
+from dem.stress import contact_points, love_weber_stress
+from granfe.dynamics import GeneralizedAlpha
+
+__all__ = ["MovingWindowParameters", "MovingWindowPenetration", "tip_near_bottom", "moved_window",
+           "lattice_fill", "push_apart", "field_at", "reference_positions", "carry_pair_history",
+           "fe_stress_average"]
+
+
+@dataclass(frozen=True)
+class MovingWindowParameters:
+    """How the DE window follows the tip. Lengths in grain diameters unless stated.
+
+    Attributes:
+        depth: total penetration depth [m] (beyond what the initial window allows).
+        trigger: the window moves when the tip is this close to its bottom.
+        step: how far the bottom moves per move.
+        max_height: largest window height [m] (the Box's extent along the axis); None: the
+            window only grows.
+        settle_steps: DEM steps of settling after a move (ghosts and cone held).
+        settle_hold: free grains closer than this to the cone are held during the settle
+            too (the cone is paused: left free they would relax away from the tip and the
+            tip force would drop).
+        relax_iterations: geometric push-apart iterations for new grains' overlaps.
+        overlap_tolerance: overlap left after the push-apart, fraction of the mean radius.
+        max_moves: a run stops moving the window after this many moves.
+        seed: of the new grains' lattice jitter and radii.
+    """
+
+    depth: float = 0.08
+    trigger: float = 3.0
+    step: float = 6.0
+    max_height: float | None = None
+    settle_steps: int = 400
+    settle_hold: float = 4.0
+    relax_iterations: int = 200
+    overlap_tolerance: float = 1e-3
+    max_moves: int = 50
+    seed: int = 7
+
+    def __post_init__(self):
+        if not (np.isfinite(self.settle_hold) and self.settle_hold >= 0):
+            raise ValueError(f"settle_hold must be >= 0, got {self.settle_hold!r}")
+        for name in ("depth", "trigger", "step", "overlap_tolerance"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be > 0, got {v!r}")
+        if self.max_height is not None and not (np.isfinite(self.max_height) and self.max_height > 0):
+            raise ValueError(f"max_height must be None or > 0 m, got {self.max_height!r}")
+        for name in ("settle_steps", "relax_iterations", "max_moves"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+
+
+# ---- geometry of a move ------------------------------------------------------------------
+def tip_near_bottom(tip: float, window: Box, distance: float, axis: int = -1) -> bool:
+    """True when the tip coordinate along ``axis`` is within ``distance`` [m] of the
+    window's bottom face (or below it)."""
+    if not distance >= 0:
+        raise ValueError(f"distance must be >= 0 m, got {distance!r}")
+    return bool(tip - window.lo[axis] <= distance)
+
+
+def moved_window(window: Box, step: float, max_height: float | None = None, axis: int = -1) -> Box:
+    """The window with its bottom ``step`` [m] lower along ``axis``; the top follows only as
+    far as needed to keep the height <= ``max_height`` [m]."""
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"step must be > 0 m, got {step!r}")
+    lo, hi = list(window.lo), list(window.hi)
+    lo[axis] -= step
+    if max_height is not None:
+        hi[axis] = min(hi[axis], lo[axis] + max_height)
+    return Box(tuple(lo), tuple(hi))
+
+
+def _mean_measure(radius, jitter, dim):
+    """E[pi r^2] (2D) or E[4/3 pi r^3] (3D) for r = radius (1 - jitter U), U uniform."""
+    j = jitter
+    if dim == 2:
+        return np.pi * radius**2 * (1 - j + j**2 / 3)
+    return 4 / 3 * np.pi * radius**3 * (1 - 1.5 * j + j**2 - j**3 / 4)
+
+
+def lattice_fill(lo, hi, radius: float, jitter: float, fraction: float, rng):
+    """A jittered lattice in the box [lo, hi] (2 or 3 entries) at solid ``fraction``.
+
+    Radii are ``radius (1 - jitter U)`` as in the initial window; the spacing s of the
+    hexagonal (2D) or fcc (3D) lattice gives the expected fraction. Each centre moves
+    uniformly inside a ball of its free gap ``(s - 2 r) / 2`` (none when s < 2 r: those
+    overlaps are for :func:`push_apart`). Returns X (n, 3), r (n,).
+    """
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    dim = lo.size
+    if not 0 < fraction < (0.9069 if dim == 2 else 0.7405):
+        raise ValueError(f"fraction must lie in (0, densest lattice packing), got {fraction!r}")
+    if np.any(hi <= lo):
+        return np.zeros((0, 3)), np.zeros(0)
+    cell = np.sqrt(3) / 2 if dim == 2 else 1 / np.sqrt(2)  # volume per site / s^dim
+    s = (_mean_measure(radius, jitter, dim) / (fraction * cell)) ** (1 / dim)
+    if dim == 2:
+        rows = np.arange(lo[1] + 0.5 * s, hi[1] - 0.5 * s + 1e-12 * s, s * np.sqrt(3) / 2)
+        pts = [np.column_stack([xs, np.full_like(xs, y)]) for k, y in enumerate(rows)
+               for xs in [np.arange(lo[0] + 0.5 * s * (1 + k % 2), hi[0] - 0.5 * s + 1e-12 * s, s)]]
+    else:
+        a = s * np.sqrt(2)
+        base = np.array([[0, 0, 0], [0.5, 0.5, 0], [0.5, 0, 0.5], [0, 0.5, 0.5]]) * a
+        ranges = [np.arange(lo[k] + 0.5 * s, hi[k] - 0.5 * s + 1e-12 * s, a) for k in range(3)]
+        corners = np.stack(np.meshgrid(*ranges, indexing="ij"), -1).reshape(-1, 3)
+        pts = [(corners[:, None] + base[None]).reshape(-1, 3)]
+        pts = [q[np.all(q <= hi - 0.5 * s + 1e-12 * s, axis=1)] for q in pts]
+    X = np.vstack(pts) if pts else np.zeros((0, dim))
+    r = radius * (1 - jitter * rng.random(len(X)))
+    d = rng.normal(size=X.shape)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    amp = np.maximum(0.5 * s - r, 0.0) * rng.random(len(X)) ** (1 / dim)
+    out = np.zeros((len(X), 3))
+    out[:, :dim] = X + d * amp[:, None]
+    return out, r
+
+
+def push_apart(x, r, movable, tolerance: float, iterations: int):
+    """Remove overlaps by moving the ``movable`` particles only (Jacobi projection: each
+    overlap is split between two movable particles, or taken by the movable one alone).
+
+    Returns new centres (n, 3), the iterations used and the largest overlap left [m].
+    """
+    x = x.copy()
+    movable = np.asarray(movable, bool)
+    worst = 0.0
+    for it in range(iterations + 1):
+        pi, pj = build_pairs(x, r, 0.0)
+        d = x[pj] - x[pi]
+        dist = np.linalg.norm(d, axis=1)
+        ov = r[pi] + r[pj] - dist
+        hit = (ov > 0) & (movable[pi] | movable[pj])
+        worst = float(ov[hit].max(initial=0.0))
+        if worst <= tolerance or it == iterations:
+            return x, it, worst
+        pi, pj, n, ov = pi[hit], pj[hit], d[hit] / dist[hit, None], ov[hit]
+        both = movable[pi] & movable[pj]
+        share_i = np.where(both, 0.5, movable[pi].astype(float))
+        share_j = np.where(both, 0.5, movable[pj].astype(float))
+        dx = np.zeros_like(x)
+        # slightly more than the overlap: the Jacobi sweep otherwise converges only linearly
+        np.add.at(dx, pi, -(1.01 * share_i * ov)[:, None] * n)
+        np.add.at(dx, pj, (1.01 * share_j * ov)[:, None] * n)
+        x += dx
+    return x, iterations, worst
+
+
+# ---- FE values at points -----------------------------------------------------------------
+def field_at(V, w: fem.Function, points: np.ndarray, sub: int) -> np.ndarray:
+    """Values (n, value_size) of field ``sub`` (0: u, 1: phi) of ``w`` at ``points`` (n, >=
+    gdim), on every rank; the same basis evaluation as the coupling's ghost motion.
+    Collective."""
+    gdim = V.mesh.geometry.dim
+    pts = np.asarray(points, float)[:, :gdim]
+    owners = owner_ranks(V.mesh, pts)
+    mine = np.flatnonzero(owners == V.mesh.comm.rank)
+    basis = FieldBasis.build(V, pts[mine], sub=sub)
+    local = basis.interpolate(w)
+    out = np.zeros((len(pts), basis.value_size))
+    for idx, val in V.mesh.comm.allgather((mine, local)):
+        out[idx] = val.reshape(len(idx), basis.value_size)
+    return out
+
+
+def reference_positions(x: np.ndarray, displacement, start: np.ndarray | None = None,
+                        clamp=None, tolerance: float = 1e-14, iterations: int = 100):
+    """Solve ``X + u(X) = x`` for X (n, 3) from ``start`` (default x).
+
+    Relaxed fixed point ``X <- clamp(X + b (x - u(X) - X))`` per point, ``b = 1`` (rate: the
+    displacement gradient) halved for a point whose residual grows (large gradients at
+    the tip). ``displacement`` maps points (n, 3) to (n, gdim) [m]; ``clamp`` keeps the
+    iterates where u is defined (grains heaved above the continuum's surface get the
+    nearest point of the mesh's box: for them ``X + u(X) != x``).
+
+    Returns X and the residual |x - X - u(X)| (n,) [m] of the last iterate.
+    """
+    X = (x if start is None else start).copy()
+    n = len(x)
+    beta, res_prev = np.ones(n), np.full(n, np.inf)
+    scale = max(float(np.abs(x).max(initial=0.0)), 1e-300)
+    res = np.zeros(n)
+    for _ in range(iterations):
+        r = x - X
+        u = displacement(X)
+        r[:, : u.shape[1]] -= u
+        res = np.linalg.norm(r, axis=1)
+        if np.all(res <= tolerance * scale):
+            break
+        beta = np.where(res > res_prev, 0.5 * beta, beta)
+        res_prev = res
+        new = X + beta[:, None] * r
+        X = clamp(new) if clamp is not None else new
+    return X, res
+
+
+def carry_pair_history(old_nl, new_of_old: np.ndarray, new_nl) -> int:
+    """Copy tangential springs, slip flags and spring energies of surviving pairs from the
+    neighbour list ``old_nl`` to ``new_nl`` (already built); ``new_of_old`` maps old
+    particle indices to new ones (-1: removed). Index order is kept, so (i < j) pairs stay
+    (i < j) and the springs keep their sign. Returns the number of pairs carried."""
+    ni, nj = new_of_old[old_nl.pi], new_of_old[old_nl.pj]
+    alive = (ni >= 0) & (nj >= 0)
+    if np.any(ni[alive] >= nj[alive]):
+        raise ValueError("new_of_old must keep the particles' order")
+    keys = ni[alive] * new_nl.n + nj[alive]
+    order = np.argsort(keys)
+    new_keys = new_nl.pi * new_nl.n + new_nl.pj
+    new_nl.hist, new_nl.slip, new_nl.etan = carry_history(
+        keys[order], new_keys, old_nl.hist[alive][order], old_nl.slip[alive][order],
+        old_nl.etan[alive][order])
+    return int(np.isin(new_keys, keys).sum())
+
+
+def fe_stress_average(problem, lo, hi) -> np.ndarray:
+    """Force stress sigma (gdim, gdim) [Pa] of ``problem.w`` averaged over the cells whose
+    midpoints lie in the box [lo, hi] (reference coordinates). Collective."""
+    from dolfinx.mesh import compute_midpoints
+
+    domain = problem.domain
+    tdim, gdim = domain.topology.dim, domain.geometry.dim
+    n_cells = domain.topology.index_map(tdim).size_local
+    mid = compute_midpoints(domain, tdim, np.arange(n_cells, dtype=np.int32))[:, :gdim]
+    chi = fem.Function(fem.functionspace(domain, ("DG", 0)))
+    inside = np.all((mid >= np.asarray(lo)[:gdim]) & (mid <= np.asarray(hi)[:gdim]), axis=1)
+    chi.x.array[:n_cells] = inside
+    chi.x.scatter_forward()
+    sigma, _ = problem.stress_expressions()
+    comm = domain.comm
+    area = comm.allreduce(fem.assemble_scalar(fem.form(chi * problem.dx)), MPI.SUM)
+    if area <= 0:
+        raise ValueError(f"no cell midpoint lies in the box {lo}..{hi}")
+    return np.array([[comm.allreduce(fem.assemble_scalar(fem.form(sigma[i, j] * chi * problem.dx)),
+                                     MPI.SUM) / area for j in range(gdim)] for i in range(gdim)])
+
+
+# ---- the coupled penetration with a moving window -------------------------------------------
+class MovingWindowPenetration(CoupledPenetration):
+    """:class:`CoupledPenetration` whose DE window follows the tip (module docstring).
+
+    ``prm.depth`` is what the initial window allows (it sizes nothing else); the run goes to
+    ``moving.depth``. ``moves`` holds one record per move.
+    """
+
+    def __init__(self, prm: PenetrationParameters, moving: MovingWindowParameters, comm, log=print):
+        super().__init__(prm, comm, log=log)
+        self._interface_bc = self.problem.bcs[-1]   # appended by the parent's interface
+        self.moving = moving
+        self.axis = self.sim.p.dim - 1
+        self.depth = 0.0
+        self.moves: list[dict] = []
+        self._stepper_count = 0
+        # a shaft long enough for the whole run (the parent sized it for prm.depth)
+        rc = prm.cone_radius
+        pen, r_pen, on_cone = cone_clump(rc, prm.apex_deg, moving.depth + 3 * rc, prm.radius)
+        pen[:, self.axis] += self.pen0[:, self.axis].min() - pen[:, self.axis].min()
+        self.pen0, self.on_cone, self._r_pen = pen, on_cone, r_pen
+        clump = Particles.spheres(pen, r_pen, prm.density, dim=self.sim.p.dim, kind=GHOST)
+        self.clump_internal = Simulation(clump, self.material, allow_overlap=True).p.force.copy()
+        p, n = self.sim.p, self.n_grains
+        self._rebuild_simulation(p.x[:n], p.v[:n], p.omega[:n], p.radius[:n], self.kinds,
+                                 np.arange(n), same_clump=False)
+
+    # ---- state --------------------------------------------------------------------------
+    def tip(self) -> float:
+        """Lowest point of the cone along the axis [m] (current configuration)."""
+        p = self.sim.p
+        return float((p.x[self.pen_index, self.axis] - p.radius[self.pen_index]).min())
+
+    def needs_move(self) -> bool:
+        d = 2 * self.prm.radius
+        # the tip moves with the cone; the window lives in reference coordinates, and
+        # the FE displacement under the tip is small against the trigger distance
+        return (len(self.moves) < self.moving.max_moves
+                and tip_near_bottom(self.tip(), self.regions.window, self.moving.trigger * d, self.axis))
+
+    def _displacement(self, X):
+        return field_at(self.problem.V, self.problem.w, X, 0)
+
+    def _clamp(self, X):
+        """Points moved into the chamber's box (a hair inside, so that a cell holds them)."""
+        g, dim = self.problem.domain.geometry.x, self.sim.p.dim
+        lo = np.ascontiguousarray(g[:, :dim].min(axis=0, initial=np.inf))
+        hi = np.ascontiguousarray(g[:, :dim].max(axis=0, initial=-np.inf))
+        self.comm.Allreduce(MPI.IN_PLACE, lo, op=MPI.MIN)
+        self.comm.Allreduce(MPI.IN_PLACE, hi, op=MPI.MAX)
+        eps = 1e-9 * float(np.max(hi - lo))
+        out = X.copy()
+        out[:, :dim] = np.clip(X[:, :dim], lo + eps, hi - eps)
+        return out
+
+    def _rebuild_simulation(self, x, v, omega, radius, kinds, new_of_old, same_clump=True):
+        """A new Simulation of grains (x, v, omega, radius (n,), kinds 0/1) + the cone at the
+        current depth, carrying the contact history of surviving pairs (``new_of_old`` over
+        the old grains, -1: removed; the cone's disks map onto themselves if
+        ``same_clump``). Returns the number of contacts carried."""
+        prm, old = self.prm, self.sim
+        n, n_pen = len(x), len(self.pen0)
+        pen_x = self.pen0 - self.depth * np.eye(3)[self.axis]
+        kind = np.concatenate([np.where(kinds == 1, GHOST, 0), np.full(n_pen, GHOST)])
+        p = Particles.spheres(np.vstack([x, pen_x]), np.concatenate([radius, np.full(n_pen, self._r_pen)]),
+                              prm.density, dim=old.p.dim, kind=kind.astype(np.int8),
+                              v=np.vstack([v, np.zeros((n_pen, 3))]),
+                              omega=np.vstack([omega, np.zeros((n_pen, 3))]))
+        sim = Simulation(p, self.material, gravity=old.gravity, dt=old.dt, allow_overlap=True)
+        old_pen = len(self.pen_index)
+        cone = n + np.arange(old_pen) if same_clump else np.full(old_pen, -1)
+        carried = carry_pair_history(old.nl, np.concatenate([np.asarray(new_of_old, np.int64), cone]),
+                                     sim.nl)
+        sim.compute_forces(update_history=False)   # forces of the first kick with the history
+        self.sim = sim
+        self.kinds = np.asarray(kinds, np.int8)
+        self.n_grains = n
+        self.pen_index = np.arange(n, n + n_pen)
+        self.free_local = np.flatnonzero(self.kinds == 0)
+        self.ghost_local = np.flatnonzero(self.kinds == 1)
+        return carried
+
+    # ---- measures -----------------------------------------------------------------------
+    def _energies(self) -> dict:
+        """Kinetic energy of the free grains and elastic energy of all contacts [J]."""
+        sim = self.sim
+        elastic = sim.compute_forces(update_history=False)[0]
+        return {"kinetic": float(sim.kinetic_energy().sum()), "elastic": float(elastic)}
+
+    def _tip_force(self) -> float:
+        """Axial force of the grains on the cone part [N] (after :meth:`_energies`)."""
+        f = self.sim.p.force[self.pen_index] - self.clump_internal
+        return float(f[self.on_cone, self.axis].sum())
+
+    def _box(self, axis_lo, axis_hi, lateral_margin=0.0):
+        """(lo, hi) of the window's lateral extent (widened by a margin) x [axis_lo, axis_hi]."""
+        lo, hi = list(self.regions.window.lo), list(self.regions.window.hi)
+        lo = [v - lateral_margin for v in lo]
+        hi = [v + lateral_margin for v in hi]
+        lo[self.axis], hi[self.axis] = axis_lo, axis_hi
+        return np.array(lo), np.array(hi)
+
+    def _grain_stress(self, lo, hi) -> np.ndarray:
+        """Love-Weber stress (dim, dim) [Pa] of the contacts whose points lie in [lo, hi]."""
+        p, dim = self.sim.p, self.sim.p.dim
+        # ghost-ghost pairs count: a band of ghosts carries the weight above it too
+        pairs, force = self.sim.contact_forces(skip_ghost_pairs=False)
+        cone = np.isin(pairs, self.pen_index).all(axis=1)
+        pairs, force = pairs[~cone], force[~cone]
+        if len(pairs) == 0:
+            return np.zeros((dim, dim))
+        xc = contact_points(p.x, p.radius, pairs)[:, :dim]
+        mask = np.all((xc >= lo) & (xc <= hi), axis=1)
+        return love_weber_stress(p.x, pairs, force, float(np.prod(hi - lo)), mask)[:dim, :dim]
+
+    def _packing_fraction(self) -> float:
+        """Solid fraction of the grains in the current window below the surface, away from
+        the cone (a strip of two cone radii either side of the axis left out)."""
+        d, ax, dim = 2 * self.prm.radius, self.axis, self.sim.p.dim
+        # the ghost band belongs to the same packing: include it for a larger sample
+        lo, hi = self._box(self.regions.window.lo[ax] - self.regions.ghost_width, self.surface - 2 * d,
+                           lateral_margin=self.regions.ghost_width)
+        X = self.x_ref[:, :dim]
+        lateral = [k for k in range(dim) if k != ax]
+        strip = 2 * self.prm.cone_radius
+        inside = np.all((X >= lo) & (X <= hi), axis=1) & (np.linalg.norm(X[:, lateral], axis=1) > strip)
+        r = self.sim.p.radius[: self.n_grains][inside]
+        measure = np.pi * r**2 if dim == 2 else 4 / 3 * np.pi * r**3
+        cross = np.prod((hi - lo)[lateral]) - (2 * strip if dim == 2 else np.pi * strip**2)
+        return float(measure.sum() / (cross * (hi - lo)[ax]))
+
+    # ---- the move -----------------------------------------------------------------------
+    def _new_grains(self, old: CouplingRegions, new: CouplingRegions, fraction, rng):
+        """Reference centres (k, 3) and radii of the lattice filling new minus old coverage."""
+        prm, ax, dim = self.prm, self.axis, self.sim.p.dim
+        band = new.ghost_width
+        lo, hi = np.array(new.window.lo) - band, np.array(new.window.hi) + band
+        hi[ax] = min(old.window.lo[ax], hi[ax])
+        X, r = lattice_fill(lo, hi, prm.radius, prm.jitter, fraction, rng)
+        keep = (old.particle_kinds(X[:, :dim]) < 0) & (new.particle_kinds(X[:, :dim]) >= 0)
+        return X[keep], r[keep]
+
+    def move(self) -> dict:
+        """Move the window one step and convert continuum <-> grains (module docstring).
+        Collective (FE evaluations); every rank does the same DEM work."""
+        t0 = time.perf_counter()
+        prm, mv, ax, dim = self.prm, self.moving, self.axis, self.sim.p.dim
+        d, n = 2 * prm.radius, self.n_grains
+        p = self.sim.p
+        before = self._energies()
+        force_before = self._tip_force()
+        old_regions = self.regions
+        old_lo = old_regions.window.lo[ax]
+        band = old_regions.ghost_width
+        ref_lo, ref_hi = self._box(old_lo - band, old_lo)
+        stress_layer_before = self._grain_stress(ref_lo, ref_hi)
+        regions = CouplingRegions(moved_window(old_regions.window, mv.step * d, mv.max_height, ax),
+                                  band, old_regions.handshake)
+        # ---- survivors: reference positions from the current FE field, kinds in the new window
+        X_old, res_old = reference_positions(p.x[:n], self._displacement, start=self.x_ref,
+                                             clamp=self._clamp)
+        kinds_old = regions.particle_kinds(X_old[:, :dim])
+        keep = np.flatnonzero(kinds_old >= 0)
+        # ---- new grains: lattice in the reference configuration, mapped by the FE fields
+        fraction = self._packing_fraction()
+        rng = np.random.default_rng(mv.seed + len(self.moves))
+        X_new, r_new = self._new_grains(old_regions, regions, fraction, rng)
+        x_new = X_new.copy()
+        x_new[:, :dim] += self._displacement(X_new)
+        # ---- overlaps with the grains kept and the cone: drop deep ones, push the rest apart
+        x_held = np.vstack([p.x[keep], p.x[self.pen_index]])
+        r_held = np.concatenate([p.radius[keep], p.radius[self.pen_index]])
+        x_all, r_all = np.vstack([x_held, x_new]), np.concatenate([r_held, r_new])
+        pi, pj = build_pairs(x_all, r_all, 0.0)
+        ov = r_all[pi] + r_all[pj] - np.linalg.norm(x_all[pj] - x_all[pi], axis=1)
+        nh = len(x_held)
+        deep = (pi < nh) & (pj >= nh) & (ov > 0.5 * np.minimum(r_all[pi], r_all[pj]))
+        drop = np.unique(pj[deep]) - nh
+        alive = np.setdiff1d(np.arange(len(x_new)), drop)
+        x_new, X_new, r_new = x_new[alive], X_new[alive], r_new[alive]
+        movable = np.concatenate([np.zeros(nh, bool), np.ones(len(x_new), bool)])
+        x_all, its, worst = push_apart(np.vstack([x_held, x_new]), np.concatenate([r_held, r_new]),
+                                       movable, mv.overlap_tolerance * prm.radius, mv.relax_iterations)
+        x_new = x_all[nh:]
+        X_new, res_new = reference_positions(x_new, self._displacement, start=X_new,
+                                             clamp=self._clamp)
+        kinds_new = regions.particle_kinds(X_new[:, :dim])
+        inside = kinds_new >= 0
+        x_new, X_new, r_new, kinds_new = x_new[inside], X_new[inside], r_new[inside], kinds_new[inside]
+        st = self.stepper
+        v_new = np.zeros_like(x_new)
+        v_new[:, :dim] = field_at(self.problem.V, st.v, X_new, 0)
+        w_new = np.zeros_like(x_new)
+        spin = field_at(self.problem.V, st.v, X_new, 1)
+        if dim == 2:
+            w_new[:, 2] = spin[:, 0]
+        else:
+            w_new[:] = spin
+        # ---- the new DEM and coupling
+        new_of_old = np.full(n, -1, np.int64)
+        new_of_old[keep] = np.arange(len(keep))
+        carried = self._rebuild_simulation(
+            np.vstack([p.x[keep], x_new]), np.vstack([p.v[keep], v_new]),
+            np.vstack([p.omega[keep], w_new]), np.concatenate([p.radius[keep], r_new]),
+            np.concatenate([kinds_old[keep], kinds_new]), new_of_old)
+        self.x_ref = np.vstack([X_old[keep], X_new])
+        self.regions = regions
+        self._rebuild_coupling()
+        after_rebuild = self._energies()
+        # ---- settle: ghosts at the FE positions, the cone paused
+        new_lo, new_hi = self._box(regions.window.lo[ax], old_lo - band if mv.step * d > band + d else old_lo)
+        stress_new_before = self._grain_stress(new_lo, new_hi)
+        held = self._settle()
+        after_settle = self._energies()
+        stress_new = self._grain_stress(new_lo, new_hi)
+        stress_layer_after = self._grain_stress(ref_lo, ref_hi)
+        sigma_fe = fe_stress_average(self.problem, new_lo, new_hi)
+        centre = 0.5 * (new_lo[ax] + new_hi[ax])
+        geostatic = -self.material_fe.rho * self.prm.gravity * (self.surface - centre)
+        target = sigma_fe[ax, ax] + geostatic
+        record = {
+            "move": len(self.moves) + 1, "depth": self.depth, "tip": self.tip(),
+            "window_lo_before": list(old_regions.window.lo), "window_hi_before": list(old_regions.window.hi),
+            "window_lo": list(regions.window.lo), "window_hi": list(regions.window.hi),
+            "created": int(len(x_new)), "removed": int(n - len(keep)),
+            "dropped_overlapping": int(len(drop)), "push_apart_iterations": int(its),
+            "overlap_left": worst,
+            "reference_residual_max": {"survivors": float(res_old[keep].max(initial=0.0)),
+                                       "new": float(res_new.max(initial=0.0))},
+            "reference_unresolved": int((res_old[keep] > 1e-9).sum()), "packing_fraction_target": fraction,
+            "contacts_carried": carried, "held_in_settle": held, "grains": self.n_grains,
+            "energy_before": before, "energy_after_rebuild": after_rebuild,
+            "energy_after_settle": after_settle,
+            "tip_force_before": force_before, "tip_force_after_settle": self._tip_force(),
+            "stress_axis": {
+                "new_grains_before_settle": float(stress_new_before[ax, ax]),
+                "new_grains_after_settle": float(stress_new[ax, ax]),
+                "layer_above_before_move": float(stress_layer_before[ax, ax]),
+                "layer_above_after_settle": float(stress_layer_after[ax, ax]),
+                "fe_increment": float(sigma_fe[ax, ax]), "geostatic": float(geostatic),
+                "fe_plus_geostatic": float(target)},
+            "stress_mean": {
+                "new_grains_after_settle": float(np.trace(stress_new) / dim),
+                "layer_above_before_move": float(np.trace(stress_layer_before) / dim)},
+            "mismatch_vs_fe_plus_geostatic": float((stress_new[ax, ax] - target) / abs(target)),
+            "mismatch_vs_layer_above": float((stress_new[ax, ax] - stress_layer_before[ax, ax])
+                                             / max(abs(stress_layer_before[ax, ax]), 1e-300)),
+            "wall_time": time.perf_counter() - t0}
+        self.moves.append(record)
+        self.log(f"window move {record['move']} at depth {self.depth * 1e3:.1f} mm: bottom "
+                 f"{old_lo * 1e3:.1f} -> {regions.window.lo[ax] * 1e3:.1f} mm, +{record['created']} "
+                 f"-{record['removed']} grains ({self.n_grains}), settle: sigma_axis new "
+                 f"{stress_new[ax, ax]:.3g} Pa vs FE+geostatic {target:.3g} Pa, layer above "
+                 f"{stress_layer_before[ax, ax]:.3g} Pa ({record['wall_time']:.1f} s)")
+        return record
+
+    def _settle(self) -> int:
+        """``settle_steps`` DEM steps with ghosts, cone and the grains near the cone held.
+        Returns how many free grains were held."""
+        from scipy.spatial import cKDTree
+
+        p, mv = self.sim.p, self.moving
+        dist, _ = cKDTree(p.x[self.pen_index]).query(p.x[self.free_local])
+        near = self.free_local[dist < mv.settle_hold * 2 * self.prm.radius + self._r_pen]
+        held = np.concatenate([self.ghost_local, near])
+        p.v[held] = 0.0
+        p.omega[held] = 0.0
+        kind = p.kind.copy()
+        p.kind[near] = GHOST   # the integrator moves FREE particles only
+        try:
+            self.sim.step(mv.settle_steps)
+        finally:
+            p.kind[:] = kind
+        return int(len(near))
+
+    def _rebuild_coupling(self):
+        """Interface and stepper for the current grains; the FE state carries on."""
+        problem, old = self.problem, self.stepper
+        problem.bcs[:] = [bc for bc in problem.bcs if bc is not self._interface_bc]
+        iface = CouplingInterface(problem, self.x_ref, self.kinds, self.regions, min_support=0.3)
+        self._interface_bc = problem.bcs[-1]
+        w = problem.w.x.array
+        iface.set_prescribed(np.concatenate([w[f.prescribed] for f in iface.fields]))
+        self._stepper_count += 1
+        st = GeneralizedAlpha(problem, float(old.dt.value), rho_inf=old.params.rho_inf,
+                              prefix=f"{problem.prefix}mw{self._stepper_count}_")
+        for name in ("w_old", "v", "a"):
+            getattr(st, name).x.array[:] = getattr(old, name).x.array
+        st.t = old.t
+        self.interface, self.stepper = iface, st
+
+    # ---- the run ------------------------------------------------------------------------
+    def run(self, progress=None):
+        """Push the cone to ``moving.depth``, moving the window whenever the tip nears its
+        bottom. The coupled step is the parent's (ghosts from the FE, projection, SNES)."""
+        n_steps = int(np.ceil(self.moving.depth / self.prm.velocity / self.dt_fe))
+        g_prev = self.interface.ghost_motion()
+        for k in range(n_steps):
+            if self.needs_move():
+                self.move()
+                g_prev = self.interface.ghost_motion()
+            g_prev = self._coupled_step(k, g_prev)
+            if progress is not None:
+                progress(self.history[-1])
+        return self.history
+
+    def _coupled_step(self, k, g_prev):
+        """One FE step of :meth:`CoupledPenetration.run` on the current window."""
+        prm, sim, iface, st = self.prm, self.sim, self.interface, self.stepper
+        p, t0, e = sim.p, time.perf_counter(), np.eye(3)[self.axis]
+        g_next = iface.ghost_motion()
+        st.predict()
+        for s in range(1, prm.substeps + 1):
+            p.x[self.ghost_local] = self._ghost_positions(g_prev, g_next, s / prm.substeps)
+            p.v[self.ghost_local, : self.axis + 1] = (g_next[0] - g_prev[0]) / self.dt_fe
+            self.depth += prm.velocity * sim.dt
+            p.x[self.pen_index] = self.pen0 - self.depth * e
+            p.v[self.pen_index] = -prm.velocity * e
+            sim.step(1)
+        n = self.n_grains
+        D = iface.project(p.x[:n, : self.axis + 1] - self.x_ref[:, : self.axis + 1], np.zeros(n))
+        n_u = iface.fields[0].prescribed.size
+        old = iface.prescribed_values()
+        D[n_u:] = old[n_u:]   # phi stays the FE's own (grain spins are not a displacement field)
+        iface.set_prescribed(old + prm.relaxation * (D - old))
+        st.solve()
+        st.finish()
+        g_new = iface.ghost_motion()
+        mismatch = float(np.linalg.norm(g_new[0] - g_next[0]) / max(np.linalg.norm(g_new[0]), 1e-30))
+        ghost_max = float(np.abs(g_new[0]).max(initial=0.0))
+        bound = 2 * self.depth + 2 * prm.radius
+        if not np.isfinite(ghost_max) or ghost_max > bound:
+            raise CouplingUnstable(
+                f"coupling unstable at depth {self.depth:.4g} m (FE step {k + 1}): ghost "
+                f"displacement {ghost_max:.3g} m exceeds twice the cone's travel ({bound:.3g} m)")
+        f = p.force[self.pen_index] - self.clump_internal
+        self.history.append(cone_record(prm, f, self.on_cone, self.depth, k + 1, st.t,
+                                        interface_mismatch=mismatch, grains=self.n_grains,
+                                        window_bottom=self.regions.window.lo[self.axis],
+                                        moves=len(self.moves), wall_time=time.perf_counter() - t0))
+        return g_next

@@ -1,0 +1,125 @@
+"""The DE window following the penetrator: criterion, new grains, one move's consistency."""
+
+import dolfinx_solver  # noqa: F401
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from coupling.moving_window import (MovingWindowParameters, MovingWindowPenetration, lattice_fill,
+                                    moved_window, push_apart, tip_near_bottom)
+from coupling.penetration import PenetrationParameters
+from coupling.regions import Box
+from dem import GHOST, build_pairs
+
+
+def test_criterion_and_window_step():
+    w = Box((-0.02, -0.03), (0.02, 0.06))
+    assert not tip_near_bottom(-0.019, w, 0.01)
+    assert tip_near_bottom(-0.021, w, 0.01)
+    assert tip_near_bottom(-0.05, w, 0.01)      # below the bottom counts too
+    grown = moved_window(w, 0.02)
+    assert grown.lo == (-0.02, -0.05) and grown.hi == (0.02, 0.06)
+    capped = moved_window(w, 0.02, max_height=0.07)
+    assert capped.lo == (-0.02, -0.05) and capped.hi == pytest.approx((0.02, 0.02))
+    with pytest.raises(ValueError, match="step"):
+        moved_window(w, 0.0)
+    with pytest.raises(ValueError, match="max_height"):
+        MovingWindowParameters(max_height=-1.0)
+    with pytest.raises(ValueError, match="trigger"):
+        MovingWindowParameters(trigger=0.0)
+
+
+@pytest.mark.parametrize("fraction", [0.70, 0.80])
+def test_lattice_fill_fraction_and_no_overlap(fraction):
+    radius, jitter = 1e-3, 0.1
+    X, r = lattice_fill((0.0, 0.0), (0.06, 0.05), radius, jitter, fraction, np.random.default_rng(3))
+    assert r.min() >= radius * (1 - jitter) and r.max() <= radius
+    movable = np.ones(len(X), bool)
+    X, _, worst = push_apart(X, r, movable, 1e-6 * radius, 400)
+    assert worst <= 1e-6 * radius
+    pi, pj = build_pairs(X, r, 0.0)
+    gap = np.linalg.norm(X[pj] - X[pi], axis=1) - r[pi] - r[pj]
+    assert gap.min(initial=1.0) > -2e-6 * radius
+    # solid fraction counted by centres in the interior (+-1 partial row of ~20: 6 %)
+    lo, hi = np.array([0.008, 0.008]), np.array([0.052, 0.042])
+    inside = np.all((X[:, :2] > lo) & (X[:, :2] < hi), axis=1)
+    assert np.pi * np.sum(r[inside] ** 2) / np.prod(hi - lo) == pytest.approx(fraction, rel=0.06)
+
+
+def test_push_apart_holds_fixed_particles():
+    x = np.array([[0.0, 0.0, 0.0], [1.5e-3, 0.0, 0.0]])
+    r = np.array([1e-3, 1e-3])
+    out, _, worst = push_apart(x, r, np.array([False, True]), 1e-9, 50)
+    assert np.array_equal(out[0], x[0])
+    assert worst <= 1e-9 and out[1, 0] >= 2e-3 - 1e-9
+
+
+@pytest.fixture(scope="module")
+def moved():
+    """A small coupled penetration whose FE state is set to a uniform strain, then one move
+    with no settle (so that the grains are where the move put them)."""
+    prm = PenetrationParameters(chamber_width=0.16, chamber_depth=0.14, window_half_width=0.02,
+                                window_depth=0.03, element_size_window=0.006,
+                                element_size_far=0.012, radius=2e-3, cone_radius=0.006,
+                                depth=0.01, settle_time=0.05, substeps=20)
+    mv = MovingWindowParameters(depth=0.05, trigger=3, step=5, max_height=0.07, settle_steps=0)
+    cpt = MovingWindowPenetration(prm, mv, MPI.COMM_WORLD, log=lambda *_: None)
+    # u_y > 0 below the surface: every reference position X = x - u lies inside the mesh
+    strain = np.array([[2e-3, 1e-3], [0.0, -3e-3]])
+    w = cpt.problem.w
+    w.sub(0).interpolate(lambda x: strain @ x[:2])
+    w.x.scatter_forward()
+    before = dict(window=cpt.regions.window, n=cpt.n_grains, x_ref=cpt.x_ref.copy())
+    record = cpt.move()
+    return cpt, record, strain, before
+
+
+@pytest.mark.mpi
+def test_move_grains_and_kinds(moved):
+    cpt, record, _, before = moved
+    dim = 2
+    assert record["created"] > 0 and cpt.n_grains == before["n"] - record["removed"] + record["created"]
+    assert cpt.regions.window.lo[1] == pytest.approx(before["window"].lo[1] - 5 * 4e-3)
+    kinds = cpt.regions.particle_kinds(cpt.x_ref[:, :dim])
+    assert np.all(kinds >= 0), "a grain outside the new window + band"
+    assert np.array_equal(kinds, cpt.kinds)
+    p = cpt.sim.p
+    assert np.all((p.kind[: cpt.n_grains] == GHOST) == (cpt.kinds == 1))
+    assert np.all(p.kind[cpt.pen_index] == GHOST)
+    # grains now cover the newly opened part of the window
+    assert np.any(cpt.x_ref[:, 1] < before["window"].lo[1] - cpt.regions.ghost_width)
+    assert record["overlap_left"] <= cpt.moving.overlap_tolerance * cpt.prm.radius
+    count, worst, _ = p.__class__.spheres(p.x[: cpt.n_grains], p.radius[: cpt.n_grains], 1.0,
+                                          dim=2).check_overlaps(allow=True)
+    assert worst <= 0.05 * cpt.prm.radius   # the settled packing's own contact overlaps
+    assert record["contacts_carried"] > 0
+
+
+@pytest.mark.mpi
+def test_move_prescribed_nodes_cover_new_window(moved):
+    cpt, _, _, before = moved
+    V = cpt.problem.V
+    Vu, parent = V.sub(0).collapse()
+    coords = np.repeat(Vu.tabulate_dof_coordinates(), Vu.dofmap.bs, axis=0)
+    parent = np.asarray(parent[0] if isinstance(parent, list) else parent).ravel()
+    lookup = dict(zip(parent.tolist(), range(len(parent))))
+    pts = coords[[lookup[d] for d in cpt.interface.fields[0].prescribed]][:, :2]
+    assert np.all(cpt.regions.prescribed_nodes(pts)), "a prescribed node outside the window"
+    deep = cpt.comm.allreduce(int(np.sum(pts[:, 1] < before["window"].lo[1])), MPI.SUM)
+    assert deep > 0, "no prescribed node in the newly covered part of the window"
+
+
+@pytest.mark.mpi
+def test_move_reproduces_uniform_strain(moved):
+    """x = X + E X for every grain, and the projection of the grains' displacements onto
+    the prescribed nodes returns the FE's own values (no jump at the move)."""
+    cpt, _, strain, _ = moved
+    n = cpt.n_grains
+    x, X = cpt.sim.p.x[:n, :2], cpt.x_ref[:, :2]
+    assert np.abs(x - X - X @ strain.T).max() < 1e-12 * np.abs(x).max()
+    iface = cpt.interface
+    D = iface.project(x - X, np.zeros(n))
+    n_u = iface.fields[0].prescribed.size
+    expect = cpt.problem.w.x.array[iface.fields[0].prescribed]
+    assert np.abs(D[:n_u] - expect).max() < 1e-9 * np.abs(expect).max(initial=1e-30) + 1e-15
