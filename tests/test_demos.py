@@ -18,6 +18,7 @@ DEMOS = [
     ("demos/2d/coupled_punch.py", True),
     ("demos/2d/wave_through_overlap.py", True),
     ("demos/2d/cpt_coupled.py", True),
+    ("demos/2d/cpt_moving_window.py", False),
     ("demos/3d/pile_penetration_stress.py", False),
     ("demos/3d/cavity_expansion_stress.py", False),
 ]
