@@ -600,7 +600,9 @@ class MovingWindowPenetration(CoupledPenetration):
         g_next = iface.ghost_motion()
         st.predict()
         for s in range(1, prm.substeps + 1):
-            p.x[self.ghost_local] = self._ghost_positions(g_prev, g_next, s / prm.substeps)
+            frac = s / prm.substeps
+            p.x[self.ghost_local, : self.axis + 1] = (self.x_ref[self.ghost_local, : self.axis + 1]
+                                                      + (1 - frac) * g_prev[0] + frac * g_next[0])
             p.v[self.ghost_local, : self.axis + 1] = (g_next[0] - g_prev[0]) / self.dt_fe
             self.depth += prm.velocity * sim.dt
             p.x[self.pen_index] = self.pen0 - self.depth * e
