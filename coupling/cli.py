@@ -43,6 +43,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "run" and scene.scene.kind == "penetration":
         return _run_penetration(scene, args)
+    if args.command == "restart":
+        kind = _scene_kind(args.directory)
+        if kind == "penetration":
+            return _run_penetration(load_scene(args.directory / "scene.toml"), args, restart=True)
 
     from mpi4py import MPI
 
@@ -64,20 +68,35 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _run_penetration(scene, args) -> int:
+def _scene_kind(directory: Path) -> str | None:
+    """The kind of the scene run in ``directory`` (None when it holds no scene.toml)."""
+    import tomllib
+
+    path = directory / "scene.toml"
+    if not path.exists():
+        return None
+    return tomllib.loads(path.read_text()).get("scene", {}).get("kind", "bonded_punch")
+
+
+def _run_penetration(scene, args, restart: bool = False) -> int:
     from mpi4py import MPI
 
     from coupling.penetration_run import run_penetration
 
-    out = args.out or Path("output") / scene.scene.name
+    out = args.directory if restart else (args.out or Path("output") / scene.scene.name)
     comm = MPI.COMM_WORLD
-    if comm.rank == 0:
+    if comm.rank == 0 and not restart:
         out.mkdir(parents=True, exist_ok=True)
         (out / "scene.toml").write_text(scene.to_toml())
     o = scene.output
     try:
         run_penetration(scene.parameters(), out, comm, frames=o.frames, fields=o.fields,
-                        particles=o.particles, png=o.png, progress=not args.no_progress)
+                        particles=o.particles, png=o.png, progress=not args.no_progress,
+                        checkpoint_every=o.checkpoint_every, restart=restart)
+    except FileNotFoundError as err:
+        if comm.rank == 0:
+            print(f"granfe: {err}", file=sys.stderr)
+        return 1
     except RuntimeError as err:
         if comm.rank == 0:
             print(f"granfe: {err}", file=sys.stderr)

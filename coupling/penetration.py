@@ -1,31 +1,59 @@
-"""2D coupled cone penetration: a DE window of frictional grains around a rigid cone pushed
-at constant velocity, inside a micropolar FE chamber, joined through an overlap band.
+"""Coupled penetration: a DE window of frictional grains around a rigid penetrator pushed at
+constant velocity, inside a micropolar FE chamber, joined through an overlap band. 2D plane
+strain (a cone's section, per unit thickness) or 3D (a 60 degree cone or a flat-ended pile).
 
-Set-up (plane strain, per unit thickness):
+Set-up:
 
-1. the FE chamber ``[-W/2, W/2] x [-H, 0]`` is meshed with gmsh (refined toward the window);
-2. grains fill the window and its ghost band on a jittered hexagonal lattice and settle
-   under gravity with the band's grains held (they are the ghosts: the container);
-3. the continuum takes the settled packing's stiffness from its contact stiffness
-   (``k_n = 3/2 F_n / delta`` of Hertz at the settled overlaps, mapped to the lattice
-   constants of :func:`dem.bonded.hexagonal_lattice_micropolar` and scaled by the
-   coordination number over 6) and the packing's density; it models the increment from
-   the geostatic state (no gravity on the FE side);
-4. the cone (60 degree apex, a rigid clump of ghost disks on its outline) moves down at
-   constant velocity; per FE step the DEM takes ``substeps`` explicit steps with the band's
-   ghosts following the FE displacement (interpolated in time from the last two FE states),
-   the free grains' displacements are projected onto the window's FE nodes (eq. 79-90) and
-   the FE step is solved (generalized-alpha). One Gauss-Seidel pass per FE step (loose
-   coupling), with the interface residual reported.
+1. the FE chamber is meshed with gmsh, refined toward the window: in 2D the box
+   ``[-W/2, W/2] x [-H, 0]``, in 3D the cylinder of diameter W and depth H about the z axis
+   (:mod:`meshes.penetration`);
+2. grains fill the window (a box: ``|x| <= a`` in 2D, ``|x|, |y| <= a`` in 3D, depth b) and
+   its ghost band on a jittered lattice (hexagonal disks in 2D, fcc spheres in 3D, radii
+   reduced by up to ``jitter``) and settle under gravity with the band's grains held (they
+   are the ghosts: the container);
+3. the continuum takes the settled packing's stiffness and density:
 
-Outputs: tip resistance ``q_c`` (vertical force on the cone part / cone width) and sleeve
-friction (tangential force on the shaft / its embedded length) against depth.
+   - 2D (linear contacts of unit thickness): the bonded hexagonal-lattice constants of
+     :func:`dem.bonded.hexagonal_lattice_micropolar` for (kn, kt) scaled by the coordination
+     number over 6; the FE models the increment from the geostatic state (no gravity on the
+     FE side, lateral sides on rollers);
+   - 3D (Hertz-Mindlin spheres): the affine (Voigt) estimate of an isotropic packing of
+     solid fraction ``phi``, coordination ``Z`` and mean radius ``R`` whose contacts have the
+     mean tangent stiffnesses ``kn = 2 E* sqrt(R* delta)``, ``kt = 8 G* sqrt(R* delta)`` at
+     the settled overlaps (branch vectors ``2 R n``, ``<n n n n>`` isotropic)::
+
+         A = 3 phi Z / (2 pi R),  lam = mu = A (kn - kt) / 15,  kappa = A kt / 3,
+         gamma = A kr / 3 with a rolling stiffness kr = 0.1 kt d^2 (as in 2D),
+
+     i.e. the bulk modulus ``phi Z kn / (6 pi R)`` and the classical shear modulus
+     ``mu + kappa / 2 = phi Z (2 kn + 3 kt) / (20 pi R)`` (Walton 1987, Chang & Misra 1990);
+     the FE carries the total state: gravity ``rho g`` and, on the chamber's lateral
+     boundary, the confining traction ``K0 rho g (s - z)`` with ``K0 = lam / (lam + 2 mu +
+     kappa)``, the uniaxial-strain (geostatic) state the grains settled into inside their
+     held container. That state ``w_geo`` is solved statically first; ghosts then follow
+     ``N (w - w_geo)`` and the free grains' displacements are added to ``N w_geo``;
+4. the penetrator (2D: ghost disks on the cone's outline; 3D: the gmsh surface of
+   :func:`meshes.penetration.cone_penetrometer` or :func:`~meshes.penetration.flat_pile`
+   covered by ghost spheres, :func:`dem.rigid.sample_surface`) moves down at constant
+   velocity; per FE step the DEM takes ``substeps`` explicit steps with the band's ghosts
+   following the FE displacement (interpolated in time from the last two FE states), the
+   free grains' displacements are projected onto the window's FE nodes (eq. 79-90), relaxed,
+   and the FE step is solved (generalized-alpha). One Gauss-Seidel pass per FE step (loose
+   coupling), with the interface residual reported; ghosts moving beyond twice the
+   penetrator's travel stop the run with :class:`CouplingUnstable`.
+
+Outputs: tip resistance ``q_c`` (vertical force on the cone / pile base over the tip area:
+cone width per unit thickness in 2D, ``pi R^2`` in 3D) and sleeve friction ``f_s`` (vertical
+force on the shaft over its embedded area) against depth. :meth:`CoupledPenetration.
+save_checkpoint` writes everything :meth:`~CoupledPenetration.run` needs to continue exactly.
 """
 
 from __future__ import annotations
 
+import json
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
 
@@ -40,7 +68,9 @@ from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 
 __all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record",
-           "CouplingUnstable"]
+           "CouplingUnstable", "tip_height"]
+
+VERTICAL = {2: 1, 3: 2}   # index of the vertical (penetration) axis
 
 
 class CouplingUnstable(RuntimeError):
@@ -49,7 +79,14 @@ class CouplingUnstable(RuntimeError):
 
 @dataclass(frozen=True)
 class PenetrationParameters:
-    """All lengths in m, times in s. Defaults: a 2 cm cone into ~1000 grains of 1.5 mm."""
+    """All lengths in m, times in s. Defaults: a 2 cm cone into ~1000 disks of 1.5 mm (2D).
+
+    In 3D (``dim = 3``) ``chamber_width`` is the chamber's diameter, the window is the square
+    prism ``|x|, |y| <= window_half_width`` of depth ``window_depth``, the grains are
+    Hertz-Mindlin spheres of Young's modulus ``youngs_modulus`` (``kn`` and ``kt_over_kn``
+    are 2D only), and ``shape`` is ``"cone"`` (apex ``apex_deg``) or ``"pile"`` (flat end),
+    both of radius ``cone_radius``.
+    """
 
     chamber_width: float = 0.3
     chamber_depth: float = 0.2
@@ -61,7 +98,7 @@ class PenetrationParameters:
     element_size_far: float = 0.04
     radius: float = 1.5e-3
     jitter: float = 0.1               # radius reduction, fraction (no initial overlap)
-    kn: float = 2.0e5                 # linear contact stiffness [N/m per m thickness]
+    kn: float = 2.0e5                 # linear contact stiffness [N/m per m thickness] (2D)
     kt_over_kn: float = 0.5
     nu: float = 0.25
     density: float = 2650.0
@@ -76,26 +113,47 @@ class PenetrationParameters:
     settle_time: float = 0.3
     gravity: float = 9.81
     seed: int = 1
+    dim: int = 2
+    shape: str = "cone"
+    # Hertz-Mindlin spheres (3D): quartz E = 2.9e10 Pa (seed 002 Table 1) scaled by 1e-3, so
+    # that the explicit step is ~30x longer; contact stiffness, and q_c with it, scale down
+    youngs_modulus: float = 2.9e7
 
     def __post_init__(self):
         for name in ("chamber_width", "chamber_depth", "window_half_width", "window_depth",
                      "ghost_width", "handshake", "element_size_window", "element_size_far",
-                     "radius", "kn", "density", "cone_radius", "velocity", "depth", "settle_time"):
+                     "radius", "kn", "density", "cone_radius", "velocity", "depth", "settle_time",
+                     "youngs_modulus"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be > 0, got {v!r}")
+        if self.dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {self.dim!r}")
+        if self.shape not in ("cone", "pile"):
+            raise ValueError(f"shape must be 'cone' or 'pile', got {self.shape!r}")
+        if self.shape == "pile" and self.dim == 2:
+            raise ValueError("shape = 'pile' needs dim = 3 (the 2D penetrator is a cone's section)")
         if self.window_half_width <= 2 * self.cone_radius:
             raise ValueError(f"window_half_width = {self.window_half_width} must exceed twice the "
                              f"cone radius ({self.cone_radius}): the cone must stay inside the window")
         if self.depth + self.cone_radius * 2 >= self.window_depth:
             raise ValueError(f"depth = {self.depth} m leaves the cone too close to the window base "
                              f"(window_depth = {self.window_depth} m)")
-        if self.window_half_width + (self.ghost_width + 1) * 2 * self.radius >= self.chamber_width / 2:
-            raise ValueError("the window and its ghost band must lie inside the chamber")
+        reach = self.window_half_width + (self.ghost_width + 1) * 2 * self.radius
+        if reach * (np.sqrt(2) if self.dim == 3 else 1.0) >= self.chamber_width / 2:
+            raise ValueError("the window and its ghost band must lie inside the chamber "
+                             f"(chamber_width = {self.chamber_width} m is too small)")
         if not 0 <= self.jitter < 0.5:
             raise ValueError(f"jitter must lie in [0, 0.5), got {self.jitter!r}")
         if self.substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {self.substeps!r}")
+
+
+def tip_height(prm: PenetrationParameters) -> float:
+    """Height of the tip part [m]: the cone's (radius / tan(apex / 2)); 0 for a flat pile."""
+    if prm.shape == "pile":
+        return 0.0
+    return prm.cone_radius / np.tan(np.radians(prm.apex_deg) / 2)
 
 
 def cone_clump(radius_cone, apex_deg, shaft_length, r_grain):
@@ -119,54 +177,192 @@ def cone_clump(radius_cone, apex_deg, shaft_length, r_grain):
     return np.column_stack([xy, np.zeros(len(xy))]), rc, cone
 
 
+def penetrator_clump(prm: PenetrationParameters, shaft_length: float):
+    """3D: centres (k, 3) of ghost spheres covering the cone's or pile's gmsh surface (tip at
+    the origin, axis z), their radius (half a grain radius), and the mask of the tip part."""
+    from dem.rigid import sample_surface
+    from meshes.penetration import cone_penetrometer, flat_pile
+
+    r_s, R = 0.5 * prm.radius, prm.cone_radius
+    h = max(R / 4, r_s)   # gmsh's triangle size; the clump is sampled at r_s anyway
+    if prm.shape == "cone":
+        pts, tri = cone_penetrometer(3, radius=R, apex_deg=prm.apex_deg, shaft_length=shaft_length, h=h)
+    else:
+        pts, tri = flat_pile(3, radius=R, length=shaft_length, h=h)
+    x = _thinned(sample_surface(pts, tri, r_s), 0.8 * r_s)
+    # the pile's base layer sits r_s above its end; the next shaft ring ~r_s higher
+    tip = x[:, 2] < (tip_height(prm) if prm.shape == "cone" else 1.5 * r_s)
+    return x, r_s, tip
+
+
+def _thinned(x: np.ndarray, spacing: float) -> np.ndarray:
+    """Greedy Poisson-disk thinning: keep a centre unless a kept one lies within ``spacing``.
+    (Sampling each triangle on its own grid puts several centres per r_s^2; every extra
+    sphere of a clump costs ~10 clump-internal pairs per DEM step.)"""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(x).query_pairs(spacing, output_type="ndarray")
+    pairs = np.sort(pairs, axis=1)
+    pairs = pairs[np.lexsort((pairs[:, 0], pairs[:, 1]))]
+    starts = np.searchsorted(pairs[:, 1], np.arange(len(x) + 1))
+    keep = np.ones(len(x), bool)
+    for i in range(len(x)):
+        if keep[pairs[starts[i]:starts[i + 1], 0]].any():
+            keep[i] = False
+    return x[keep]
+
+
 def cone_record(prm, force_on_cone, on_cone, depth, step, t, **extra) -> dict:
-    """History entry: tip force on the cone part, q_c = F / cone width, sleeve friction."""
-    tip_force = float(force_on_cone[on_cone, 1].sum())
-    sleeve = float(force_on_cone[~on_cone, 1].sum())
-    embedded = max(depth - prm.cone_radius / np.tan(np.radians(prm.apex_deg) / 2), 0.0)
+    """History entry: tip force (vertical force on the cone, or the pile's base), q_c = F /
+    tip area (2D: cone width, per unit thickness; 3D: pi R^2), sleeve friction f_s = vertical
+    force on the shaft / (perimeter x embedded length)."""
+    ax = VERTICAL[prm.dim]
+    tip_force = float(force_on_cone[on_cone, ax].sum())
+    sleeve = float(force_on_cone[~on_cone, ax].sum())
+    embedded = max(depth - tip_height(prm), 0.0)
+    R = prm.cone_radius
+    area, perimeter = (2 * R, 2.0) if prm.dim == 2 else (np.pi * R**2, 2 * np.pi * R)
     return {"step": step, "time": t, "depth": depth, "tip_force": tip_force,
-            "q_c": tip_force / (2 * prm.cone_radius), "sleeve_force": sleeve,
-            "f_s": sleeve / (2 * embedded) if embedded > 0 else 0.0, **extra}
+            "q_c": tip_force / area, "sleeve_force": sleeve,
+            "f_s": sleeve / (perimeter * embedded) if embedded > 0 else 0.0, **extra}
+
+
+def contact_material(prm: PenetrationParameters) -> ContactMaterial:
+    """The grains' contact law: linear disks of unit thickness in 2D (a line contact has no
+    Hertz radius law that the sphere formulas would give; E then only enters the time-step
+    estimate), Hertz-Mindlin spheres in 3D."""
+    if prm.dim == 2:
+        return ContactMaterial(E=prm.kn, nu=prm.nu, density=prm.density, friction=prm.friction,
+                               restitution=prm.restitution, law="linear", kn=prm.kn,
+                               kt=prm.kt_over_kn * prm.kn)
+    return ContactMaterial(E=prm.youngs_modulus, nu=prm.nu, density=prm.density,
+                           friction=prm.friction, restitution=prm.restitution, law="hertz_mindlin")
+
+
+def dem_time_step(prm: PenetrationParameters, grain_radius: np.ndarray) -> float | None:
+    """3D: 0.2 of the grains' Rayleigh step (the clump's smaller spheres are ghosts: their
+    own stability does not matter); 2D: None (the engine's default of the linear law)."""
+    if prm.dim == 2:
+        return None
+    from dem.timestep import DEFAULT_SAFETY, rayleigh_dt
+
+    return DEFAULT_SAFETY["hertz_mindlin"] * rayleigh_dt(grain_radius, prm.youngs_modulus,
+                                                         prm.nu, prm.density)
 
 
 def _cone_and_material(prm, top):
-    """The cone clump above ``top`` and the grains' contact material."""
+    """The penetrator clump above ``top`` (centres, radius, tip mask) and the contact law."""
     shaft = prm.depth + 3 * prm.cone_radius
-    pen, r_pen, on_cone = cone_clump(prm.cone_radius, prm.apex_deg, shaft, prm.radius)
-    tip0 = float(top + prm.radius + r_pen + 0.1 * prm.radius)
-    pen[:, 1] += tip0 + r_pen
-    # disks of unit thickness: a linear law (a line contact has no Hertz radius law that
-    # the sphere formulas would give); E only enters the time-step estimate
-    material = ContactMaterial(E=prm.kn, nu=prm.nu, density=prm.density, friction=prm.friction,
-                               restitution=prm.restitution, law="linear", kn=prm.kn,
-                               kt=prm.kt_over_kn * prm.kn)
-    return pen, r_pen, on_cone, material
+    if prm.dim == 2:
+        pen, r_pen, on_cone = cone_clump(prm.cone_radius, prm.apex_deg, shaft, prm.radius)
+        tip0 = float(top + prm.radius + r_pen + 0.1 * prm.radius)
+        pen[:, 1] += tip0 + r_pen
+    else:
+        pen, r_pen, on_cone = penetrator_clump(prm, shaft)
+        # the clump's envelope (its lowest sphere's bottom) 0.1 grain radius above the grains
+        pen[:, 2] += float(top + 1.1 * prm.radius - (pen[:, 2].min() - r_pen))
+    return pen, r_pen, on_cone, contact_material(prm)
+
+
+def grain_lattice(prm, lo, hi, rng):
+    """Centres (n, 3) on a lattice filling [lo, hi] (hexagonal in 2D; fcc in 3D, the centres
+    jittered within a gap of 2 % of a diameter) and radii reduced by up to ``jitter``."""
+    if prm.dim == 2:
+        x = hexagonal_lattice(lo, hi, prm.radius)
+    else:
+        from dem.packing import lattice_packing
+
+        x, _ = lattice_packing(lo, hi, prm.radius, kind="fcc", gap=0.02, jitter=1.0, seed=prm.seed)
+    return x, prm.radius * (1 - prm.jitter * rng.random(len(x)))
+
+
+def _gravity(prm):
+    g = np.zeros(3)
+    g[VERTICAL[prm.dim]] = -prm.gravity
+    return g
+
+
+# ---- exact DEM state (for checkpoints; dem.Simulation has no state_dict yet) --------------------
+_SKIP = {"p", "nl", "materials", "table", "walls", "domain", "state_path", "_good", "_out", "_wd"}
+
+
+def _plain_state(obj, prefix: str, skip=()) -> dict:
+    """ndarray, number, dict-of-numbers and tuple-of-numbers attributes of ``obj``."""
+    out = {}
+    for k, v in vars(obj).items():
+        if k in skip or v is None:
+            continue
+        if isinstance(v, np.ndarray):
+            out[f"{prefix}{k}"] = v.copy()
+        elif isinstance(v, (bool, int, float, np.number)):
+            out[f"{prefix}{k}"] = np.asarray(v)
+        elif isinstance(v, tuple) and all(isinstance(a, (int, float)) for a in v):
+            out[f"{prefix}tuple:{k}"] = np.asarray(v, float)
+        elif isinstance(v, dict) and all(isinstance(a, (int, float)) for a in v.values()):
+            for key, a in v.items():
+                out[f"{prefix}dict:{k}:{key}"] = np.asarray(a)
+    return out
+
+
+def _restore_plain(obj, prefix: str, data) -> None:
+    for name in data:
+        if not name.startswith(prefix):
+            continue
+        key, value = name[len(prefix):], data[name]
+        if key.startswith("tuple:"):
+            setattr(obj, key[6:], tuple(float(a) for a in value))
+        elif key.startswith("dict:"):
+            _, attr, k = key.split(":", 2)
+            getattr(obj, attr)[k] = value.item()
+        elif value.ndim == 0 and not isinstance(getattr(obj, key, None), np.ndarray):
+            setattr(obj, key, type(getattr(obj, key))(value.item()) if getattr(obj, key, None) is not None
+                    else value.item())
+        else:
+            setattr(obj, key, np.array(value))
+
+
+def dem_state(sim: Simulation) -> dict:
+    """Everything a `Simulation` step reads: particle arrays, forces of the last step, the
+    neighbour list with its contact history and build positions, time, ledger."""
+    return (_plain_state(sim.p, "p.") | _plain_state(sim.nl, "nl.")
+            | _plain_state(sim, "sim.", _SKIP))
+
+
+def restore_dem_state(sim: Simulation, data) -> None:
+    """Inverse of :func:`dem_state` on a simulation built with the same particle count."""
+    if len(data["p.x"]) != sim.p.n:
+        raise ValueError(f"checkpoint holds {len(data['p.x'])} particles, the simulation {sim.p.n}")
+    for obj, prefix in ((sim.p, "p."), (sim.nl, "nl."), (sim, "sim.")):
+        _restore_plain(obj, prefix, data)
 
 
 class DemPenetration:
-    """The same penetration fully as DEM: grains fill the whole chamber, held by walls
-    (no continuum objects are built). The reference for :class:`CoupledPenetration`."""
+    """The same penetration fully as DEM: grains fill the whole chamber (a box of the
+    chamber's width in 3D), held by walls (no continuum objects are built). The reference
+    for :class:`CoupledPenetration`."""
 
     def __init__(self, prm: PenetrationParameters, log=print):
         from dem import PlaneWall
 
         self.prm = prm
         rng = np.random.default_rng(prm.seed)
-        W, H = prm.chamber_width, prm.chamber_depth
-        x = hexagonal_lattice((-W / 2, -H), (W / 2, 0.0), prm.radius)
-        radius = prm.radius * (1 - prm.jitter * rng.random(len(x)))
-        Particles.spheres(x, radius, prm.density, dim=2).check_overlaps()
-        pen, r_pen, self.on_cone, material = _cone_and_material(prm, x[:, 1].max())
+        W, H, dim, ax = prm.chamber_width, prm.chamber_depth, prm.dim, VERTICAL[prm.dim]
+        lo = (-W / 2, -H) if dim == 2 else (-W / 2, -W / 2, -H)
+        hi = (W / 2, 0.0) if dim == 2 else (W / 2, W / 2, 0.0)
+        x, radius = grain_lattice(prm, lo, hi, rng)
+        Particles.spheres(x, radius, prm.density, dim=dim).check_overlaps()
+        pen, r_pen, self.on_cone, material = _cone_and_material(prm, x[:, ax].max())
         self.pen0 = pen.copy()
         n = len(x)
         p = Particles.spheres(np.vstack([x, pen]), np.concatenate([radius, np.full(len(pen), r_pen)]),
-                              prm.density, dim=2,
+                              prm.density, dim=dim,
                               kind=np.concatenate([np.zeros(n), np.full(len(pen), GHOST)]).astype(np.int8))
-        walls = [PlaneWall((-W / 2, 0, 0), (1, 0, 0)), PlaneWall((W / 2, 0, 0), (-1, 0, 0)),
-                 PlaneWall((0, -H, 0), (0, 1, 0))]
+        walls = [PlaneWall(tuple(-W / 2 * e), tuple(e)) for e in np.eye(3)[:dim - 1]]
+        walls += [PlaneWall(tuple(W / 2 * e), tuple(-e)) for e in np.eye(3)[:dim - 1]]
+        walls.append(PlaneWall(tuple(-H * np.eye(3)[ax]), tuple(np.eye(3)[ax])))
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
-        self.sim = Simulation(p, material, walls=walls, gravity=(0.0, -prm.gravity, 0.0),
-                              allow_overlap=True)
+        self.sim = Simulation(p, material, walls=walls, gravity=_gravity(prm),
+                              dt=dem_time_step(prm, radius), allow_overlap=True)
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
         t0 = time.perf_counter()
@@ -177,6 +373,7 @@ class DemPenetration:
     def run(self, progress=None):
         prm, sim = self.prm, self.sim
         p = sim.p
+        down = np.eye(3)[VERTICAL[prm.dim]]
         block = prm.substeps * sim.dt
         n_steps = int(np.ceil(prm.depth / prm.velocity / block))
         depth, t = 0.0, 0.0
@@ -184,8 +381,8 @@ class DemPenetration:
             t0 = time.perf_counter()
             for _ in range(prm.substeps):
                 depth += prm.velocity * sim.dt
-                p.x[self.pen_index] = self.pen0 - depth * np.array([0.0, 1.0, 0.0])
-                p.v[self.pen_index] = (0.0, -prm.velocity, 0.0)
+                p.x[self.pen_index] = self.pen0 - depth * down
+                p.v[self.pen_index] = -prm.velocity * down
                 sim.step(1)
             t += block
             f = p.force[self.pen_index] - self.clump_internal
@@ -197,77 +394,108 @@ class DemPenetration:
 
 
 class CoupledPenetration:
-    """Builds and runs the coupled 2D penetration (see the module docstring)."""
+    """Builds and runs the coupled penetration (see the module docstring).
 
-    def __init__(self, prm: PenetrationParameters, comm, log=print):
+    Args:
+        prm: the parameters (``prm.dim`` picks 2D or 3D).
+        comm: the FE mesh's communicator (the grains are replicated on every rank).
+        log: where progress messages go.
+        checkpoint: a directory written by :meth:`save_checkpoint` (same parameters, same
+            rank count): the settled packing, the continuum constants and the state of the
+            run are read from it instead of settling again; :meth:`run` then continues.
+    """
+
+    def __init__(self, prm: PenetrationParameters, comm, log=print, checkpoint=None):
         from meshes.penetration import build_chamber
 
         self.prm, self.comm, self.log = prm, comm, log
+        dim, ax = prm.dim, VERTICAL[prm.dim]
         rng = np.random.default_rng(prm.seed)
         d = 2 * prm.radius
         band = prm.ghost_width * d
         a, b = prm.window_half_width, prm.window_depth
         # ---- grains: jittered lattice over window + band, then settle with the band held
-        lattice = hexagonal_lattice((-a - band, -b - band), (a + band, 0.0), prm.radius)
-        radius = prm.radius * (1 - prm.jitter * rng.random(len(lattice)))
-        self.regions = CouplingRegions(Box((-a, -b), (a, 2 * b)), ghost_width=band,
+        lo, hi = [-a - band] * (dim - 1) + [-b - band], [a + band] * (dim - 1) + [0.0]
+        lattice, radius = grain_lattice(prm, tuple(lo), tuple(hi), rng)
+        self.regions = CouplingRegions(Box(tuple([-a] * (dim - 1) + [-b]), tuple([a] * (dim - 1) + [2 * b])),
+                                       ghost_width=band,
                                        handshake=prm.handshake * prm.element_size_window)
-        kinds = self.regions.particle_kinds(lattice)
+        kinds = self.regions.particle_kinds(lattice[:, :dim])
         keep = kinds >= 0
         self.x_grains, self.kinds = lattice[keep], kinds[keep].astype(np.int8)
         radius = radius[keep]
         n = len(self.x_grains)
-        pen, r_pen, self.on_cone, self.material = _cone_and_material(prm, self.x_grains[:, 1].max())
+        pen, r_pen, self.on_cone, self.material = _cone_and_material(prm, self.x_grains[:, ax].max())
         self.pen0 = pen.copy()
         x = np.vstack([self.x_grains, pen])
         r = np.concatenate([radius, np.full(len(pen), r_pen)])
         kind = np.concatenate([np.where(self.kinds == 1, GHOST, 0), np.full(len(pen), GHOST)]).astype(np.int8)
-        Particles.spheres(self.x_grains, radius, prm.density, dim=2).check_overlaps()
-        p = Particles.spheres(x, r, prm.density, dim=2, kind=kind)
+        Particles.spheres(self.x_grains, radius, prm.density, dim=dim).check_overlaps()
+        p = Particles.spheres(x, r, prm.density, dim=dim, kind=kind)
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
-        # the cone's disks overlap each other by construction (a smooth rigid outline)
-        self.sim = Simulation(p, self.material, gravity=(0.0, -prm.gravity, 0.0),
+        # the penetrator's spheres overlap each other by construction (a smooth rigid outline)
+        self.sim = Simulation(p, self.material, gravity=_gravity(prm), dt=dem_time_step(prm, radius),
                               allow_overlap=True)
-        # the clump's own (constant) internal forces, to subtract from the cone's resultant
+        # the clump's own (constant) internal forces, to subtract from the penetrator's resultant
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
-        t0 = time.perf_counter()
-        self.sim.step(int(np.ceil(prm.settle_time / self.sim.dt)))
-        e = self.sim.energy()
-        log(f"settled {n} grains in {time.perf_counter() - t0:.1f} s "
-            f"({self.sim.nsteps} steps of {self.sim.dt:.3g} s), kinetic energy "
-            f"{e['kinetic_translational']:.3g} J")
-        self.x_ref = self.sim.p.x[:n].copy()
+        self.history: list[dict] = []
+        self.depth = 0.0
+        saved = None
+        if checkpoint is None:
+            t0 = time.perf_counter()
+            self.sim.step(int(np.ceil(prm.settle_time / self.sim.dt)))
+            e = self.sim.energy()
+            log(f"settled {n} grains in {time.perf_counter() - t0:.1f} s "
+                f"({self.sim.nsteps} steps of {self.sim.dt:.3g} s), kinetic energy "
+                f"{e['kinetic_translational']:.3g} J")
+            self.x_ref = self.sim.p.x[:n].copy()
+            self.material_fe, self.contact_stats = self._continuum_material()
+            # the continuum reaches the highest settled grain centre (every grain inside the mesh)
+            self.surface = float(self.x_ref[:, ax].max() + 1e-3 * prm.radius)
+        else:
+            saved = self._read_checkpoint(Path(checkpoint))
         # ---- continuum: chamber, stiffness from the settled contacts
-        data = build_chamber(comm, 2, width=prm.chamber_width, depth=prm.chamber_depth,
-                             window_width=2 * (a + band), window_depth=b + band,
-                             h_window=prm.element_size_window, h_far=prm.element_size_far)
-        # the continuum reaches the highest settled grain centre (every grain inside the mesh)
-        self.surface = float(self.x_ref[:, 1].max() + 1e-3 * prm.radius)
-        data.mesh.geometry.x[:, 1] += self.surface
-        self.material_fe, self.contact_stats = self._continuum_material()
-        names = {k: tag for k, (dim, tag) in data.physical_groups.items() if dim == 1}
+        if dim == 2:
+            data = build_chamber(comm, 2, width=prm.chamber_width, depth=prm.chamber_depth,
+                                 window_width=2 * (a + band), window_depth=b + band,
+                                 h_window=prm.element_size_window, h_far=prm.element_size_far)
+        else:
+            data = build_chamber(comm, 3, radius=prm.chamber_width / 2, depth=prm.chamber_depth,
+                                 window_radius=np.sqrt(2) * (a + band), window_depth=b + band,
+                                 h_window=prm.element_size_window, h_far=prm.element_size_far)
+        data.mesh.geometry.x[:, ax] += self.surface
+        names = {k: tag for k, (gd, tag) in data.physical_groups.items() if gd == dim - 1}
         self.problem = MicropolarProblem(data.mesh, self.material_fe, facet_tags=data.facet_tags,
                                          tag_names=names, degree=(1, 1), prefix="cpt_")
         self.problem.fix("bottom", "u")
         self.problem.fix("bottom", "phi")
-        self.problem.fix("left", "u_x")
-        self.problem.fix("right", "u_x")
-        coupled = np.arange(n)
+        if dim == 2:
+            self.problem.fix("left", "u_x")
+            self.problem.fix("right", "u_x")
+        else:
+            self._geostatic_loads()
+            self.problem.solve()   # the geostatic state w_geo, before any dof is prescribed
         # window nodes with few grains in their support (the free surface) stay FE dofs: an
         # ill-conditioned projection there would amplify the grains' noise
         self.interface = CouplingInterface(self.problem, self.x_ref, self.kinds, self.regions,
                                            min_support=0.3)
         self.free_local = np.flatnonzero(self.kinds == 0)
         self.ghost_local = np.flatnonzero(self.kinds == 1)
-        del coupled
+        self._g_ref, self._q_ref = None, None
+        if dim == 3:
+            self._hold_geostatic_state()
         self.dt_fe = prm.substeps * self.sim.dt
         self.stepper = GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=0.8)
-        self.history: list[dict] = []
+        self.g_prev = self._ghost_motion()
+        if saved is not None:
+            self._restore_run(saved)
 
+    # ---- set-up -------------------------------------------------------------------------
     def _continuum_material(self):
-        """Micropolar constants of the settled packing: the bonded-lattice constants of
-        (kn, kt) scaled by the coordination number over 6, the packing's density."""
+        """Micropolar constants and density of the settled packing (module docstring, 3.)."""
+        if self.prm.dim == 3:
+            return self._continuum_material_3d()
         sim, prm = self.sim, self.prm
         i, j = sim.contacts()
         grains = (i < self.n_grains) & (j < self.n_grains)
@@ -281,61 +509,197 @@ class CoupledPenetration:
         mat = MicropolarMaterial(**c, rho=rho, j=prm.radius**2 / 2)
         return mat, {"contacts": int(grains.sum()), "coordination": z, "density": rho}
 
+    def _continuum_material_3d(self):
+        from dem.contact import P_ESTAR, P_GSTAR, pair_table
+
+        sim, prm, n = self.sim, self.prm, self.n_grains
+        i, j = sim.contacts()
+        grains = (i < n) & (j < n)
+        i, j = i[grains], j[grains]
+        x, r = self.x_ref, sim.p.radius[:n]
+        delta = r[i] + r[j] - np.linalg.norm(x[j] - x[i], axis=1)
+        a = np.sqrt(r[i] * r[j] / (r[i] + r[j]) * delta)
+        row = pair_table([self.material])[0, 0]
+        kn, kt = float(np.mean(2 * row[P_ESTAR] * a)), float(np.mean(8 * row[P_GSTAR] * a))
+        # coordination and solid fraction away from the ghost band and the free surface
+        # (both lack neighbours); the whole packing when the window is too small for that
+        d, w, depth = 2 * prm.radius, prm.window_half_width, prm.window_depth
+        top = float(x[:, 2].max())
+        inner = (np.abs(x[:, :2]).max(axis=1) <= w - d) & (x[:, 2] >= -depth + d) & (x[:, 2] <= top - 2 * d)
+        volume = (2 * (w - d)) ** 2 * (top - 2 * d - (-depth + d))
+        if inner.sum() < 20:
+            inner = np.ones(n, bool)
+            volume = np.prod(x.max(0) - x.min(0) + d)
+        z = float(np.mean((np.bincount(i, minlength=n) + np.bincount(j, minlength=n))[inner]))
+        if not z >= 2:
+            raise ValueError(f"settle_time = {prm.settle_time} s leaves a coordination number of "
+                             f"{z:.2f} inside the window: not a load-bearing packing to take the "
+                             "continuum's constants from; settle longer")
+        phi = float(np.sum(4 / 3 * np.pi * r[inner] ** 3) / volume)
+        A = 3 * phi * z / (2 * np.pi * float(np.mean(r)))
+        kr = 0.1 * kt * d**2
+        mat = MicropolarMaterial(lam=A * (kn - kt) / 15, mu=A * (kn - kt) / 15, kappa=A * kt / 3,
+                                 gamma=A * kr / 3, rho=prm.density * phi, j=0.4 * prm.radius**2)
+        return mat, {"contacts": int(len(i)), "coordination": z, "density": prm.density * phi,
+                     "solid_fraction": phi, "kn": kn, "kt": kt}
+
+    def _geostatic_loads(self):
+        """3D: gravity on the continuum and, on its side, the traction of the geostatic stress
+        ``sigma_geo = -rho g (s - z) diag(K0, K0, 1)`` (uniaxial strain, K0 = lam / (lam + 2 mu
+        + kappa)): the confining pressure K0 rho g (s - z) on a vertical side."""
+        import ufl
+
+        m, g = self.material_fe, self.prm.gravity
+        k0 = m.lam / (m.lam + 2 * m.mu + m.kappa)
+        self.problem.body_force((0.0, 0.0, -m.rho * g))
+        xs = ufl.SpatialCoordinate(self.problem.domain)
+        n = ufl.FacetNormal(self.problem.domain)
+        # sigma_geo . n, not -sigma_h n: the side's facets are not exactly vertical
+        sigma_geo = -m.rho * g * (self.surface - xs[2]) * ufl.diag(ufl.as_vector([k0, k0, 1.0]))
+        self.problem.traction("side", sigma_geo * n)
+        self.k0 = k0
+
+    def _hold_geostatic_state(self):
+        """Prescribed dofs start at w_geo; ghosts and grains move relative to it."""
+        iface, w = self.interface, self.problem.w
+        iface.set_prescribed(np.concatenate([w.x.array[f.prescribed] for f in iface.fields]))
+        self._g_ref = iface.ghost_motion()
+        self._q_ref = np.zeros((self.n_grains, 3))
+        self._q_ref[iface._free_mine] = iface.fields[0].free.interpolate(w)
+
+    # ---- exchange -----------------------------------------------------------------------
+    def _ghost_motion(self):
+        """(u, theta) of the ghosts from the FE state, relative to the geostatic state."""
+        u, theta = self.interface.ghost_motion()
+        if self._g_ref is not None:
+            u, theta = u - self._g_ref[0], theta - self._g_ref[1]
+        return u, theta
+
     def _ghost_positions(self, w_start, w_end, frac):
         u0, _ = w_start
         u1, _ = w_end
-        return self.x_ref[self.ghost_local] + np.column_stack([(1 - frac) * u0 + frac * u1,
-                                                                np.zeros(len(u0))])
+        out = self.x_ref[self.ghost_local].copy()
+        out[:, : u0.shape[1]] += (1 - frac) * u0 + frac * u1
+        return out
 
-    def run(self, progress=None):
+    @property
+    def n_steps(self) -> int:
+        return int(np.ceil(self.prm.depth / self.prm.velocity / self.dt_fe))
+
+    def run(self, progress=None, steps: int | None = None):
+        """Push to ``prm.depth`` (or ``steps`` more FE steps), continuing from the current
+        state; returns the history of all steps so far."""
         prm, sim, iface, st = self.prm, self.sim, self.interface, self.stepper
-        p = sim.p
-        n_steps = int(np.ceil(prm.depth / prm.velocity / self.dt_fe))
-        g_prev = iface.ghost_motion()
-        pen_v = np.array([0.0, -prm.velocity, 0.0])
-        depth = 0.0
-        for k in range(n_steps):
+        p, dim, ax = sim.p, prm.dim, VERTICAL[prm.dim]
+        stop = self.n_steps if steps is None else min(self.n_steps, len(self.history) + steps)
+        down = np.eye(3)[ax]
+        pen_v = -prm.velocity * down
+        n_u = iface.fields[0].prescribed.size
+        for k in range(len(self.history), stop):
             t0 = time.perf_counter()
             # ghosts head for the last converged FE state (a one-step lag, no extrapolation:
             # extrapolating the FE acceleration amplifies the grains' noise)
-            g_next = iface.ghost_motion()
+            g_prev, g_next = self.g_prev, self._ghost_motion()
             st.predict()
             for s in range(1, prm.substeps + 1):
                 frac = s / prm.substeps
                 p.x[self.ghost_local] = self._ghost_positions(g_prev, g_next, frac)
-                p.v[self.ghost_local, :2] = (g_next[0] - g_prev[0]) / self.dt_fe
-                depth += prm.velocity * sim.dt
-                p.x[self.pen_index] = self.pen0 + (-depth) * np.array([0.0, 1.0, 0.0])
+                p.v[self.ghost_local, :dim] = (g_next[0] - g_prev[0]) / self.dt_fe
+                self.depth += prm.velocity * sim.dt
+                p.x[self.pen_index] = self.pen0 + (-self.depth) * down
                 p.v[self.pen_index] = pen_v
                 sim.step(1)
-            u = p.x[: self.n_grains, :2] - self.x_ref[:, :2]
-            theta = np.zeros(self.n_grains)   # grain spins are not a displacement field: phi free
+            u = p.x[: self.n_grains, :dim] - self.x_ref[:, :dim]
+            if self._q_ref is not None:
+                u = u + self._q_ref[:, :dim]
+            # grain spins are not a displacement field: phi free
+            theta = np.zeros(self.n_grains if dim == 2 else (self.n_grains, 3))
             D = iface.project(u, theta)
             # only the displacement part is prescribed from the grains; phi from the FE itself
-            n_u = iface.fields[0].prescribed.size
             old = iface.prescribed_values()
             D[n_u:] = old[n_u:]
             iface.set_prescribed(old + prm.relaxation * (D - old))
             st.solve()
             st.finish()
-            g_new = iface.ghost_motion()
+            g_new = self._ghost_motion()
             mismatch = float(np.linalg.norm(g_new[0] - g_next[0]) / max(np.linalg.norm(g_new[0]), 1e-30))
             ghost_max = float(np.abs(g_new[0]).max(initial=0.0))
             # the ghosts sit in the far field of the cone: moving more than twice as far as the
             # cone has pushed means the exchange is diverging, not that the sand flows
-            bound = 2 * depth + 2 * prm.radius
+            bound = 2 * self.depth + 2 * prm.radius
             if not np.isfinite(ghost_max) or ghost_max > bound:
                 raise CouplingUnstable(
-                    f"coupling unstable at depth {depth:.4g} m (FE step {k + 1}): ghost displacement "
-                    f"{ghost_max:.3g} m exceeds twice the cone's travel ({bound:.3g} m); reduce "
-                    f"coupling.relaxation ({prm.relaxation}), coupling.substeps ({prm.substeps}) or "
-                    f"penetrator.velocity ({prm.velocity} m/s)")
+                    f"coupling unstable at depth {self.depth:.4g} m (FE step {k + 1}): ghost "
+                    f"displacement {ghost_max:.3g} m exceeds twice the cone's travel ({bound:.3g} m); "
+                    f"reduce coupling.relaxation ({prm.relaxation}), coupling.substeps "
+                    f"({prm.substeps}) or penetrator.velocity ({prm.velocity} m/s)")
             # the ghosts continue from where the grains saw them (no jump between FE steps)
-            g_prev = g_next
+            self.g_prev = g_next
             f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
-            self.history.append(cone_record(prm, f, self.on_cone, depth, k + 1, st.t,
+            self.history.append(cone_record(prm, f, self.on_cone, self.depth, k + 1, st.t,
                                             interface_mismatch=mismatch,
                                             wall_time=time.perf_counter() - t0))
             if progress is not None:
                 progress(self.history[-1])
         return self.history
+
+    # ---- checkpoints --------------------------------------------------------------------
+    def save_checkpoint(self, directory) -> Path:
+        """Write what :meth:`run` needs to continue exactly (collective): the grains' state
+        with contact history, the settled reference, the continuum constants, the FE state
+        of the stepper (one file per rank), the ghosts' last motion, depth and history.
+        ``state.json`` is written last: a directory without it is incomplete."""
+        directory = Path(directory)
+        comm, st = self.comm, self.stepper
+        if comm.rank == 0:
+            directory.mkdir(parents=True, exist_ok=True)
+            (directory / "state.json").unlink(missing_ok=True)
+        comm.barrier()
+        np.savez(directory / f"continuum_rank{comm.rank}_of{comm.size}.npz",
+                 w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
+                 a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem._last_good)
+        if comm.rank == 0:
+            np.savez(directory / "grains.npz", **dem_state(self.sim), x_ref=self.x_ref,
+                     g_prev_u=self.g_prev[0], g_prev_theta=self.g_prev[1])
+        comm.barrier()
+        if comm.rank == 0:
+            state = {"step": len(self.history), "depth": self.depth, "t": st.t,
+                     "ranks": comm.size, "surface": self.surface,
+                     "material": asdict(self.material_fe), "packing": self.contact_stats,
+                     "history": self.history}
+            (directory / "state.json").write_text(json.dumps(state, indent=1))
+        comm.barrier()
+        return directory
+
+    def _read_checkpoint(self, directory: Path) -> dict:
+        path = directory / "state.json"
+        if not path.exists():
+            raise FileNotFoundError(f"no complete checkpoint in {directory} (expected {path})")
+        state = json.loads(path.read_text())
+        if state["ranks"] != self.comm.size:
+            raise FileNotFoundError(f"the checkpoint in {directory} was written on {state['ranks']} "
+                                    f"rank(s); restart with mpiexec -n {state['ranks']}")
+        grains = dict(np.load(directory / "grains.npz"))
+        restore_dem_state(self.sim, grains)
+        self.x_ref = grains["x_ref"]
+        self.material_fe = MicropolarMaterial(**state["material"])
+        self.contact_stats = state["packing"]
+        self.surface = state["surface"]
+        fe = dict(np.load(directory / f"continuum_rank{self.comm.rank}_of{self.comm.size}.npz"))
+        return {"state": state, "grains": grains, "fe": fe}
+
+    def _restore_run(self, saved: dict) -> None:
+        st, fe, state = self.stepper, saved["fe"], saved["state"]
+        for target, name in ((self.problem.w, "w"), (st.w_old, "w_old"), (st.v, "v"), (st.a, "a"),
+                             (self.interface.g, "g")):
+            if target.x.array.shape != fe[name].shape:
+                raise ValueError(f"checkpoint field {name} has {fe[name].shape} values, the "
+                                 f"mesh {target.x.array.shape}: different parameters or mesh")
+            target.x.array[:] = fe[name]
+        self.problem._last_good[:] = fe["last_good"]
+        st.t = state["t"]
+        self.depth = state["depth"]
+        self.history = state["history"]
+        g = saved["grains"]
+        self.g_prev = (g["g_prev_u"], g["g_prev_theta"])
+        self.log(f"restarted from step {state['step']} (depth {self.depth:.4g} m)")

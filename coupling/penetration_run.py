@@ -1,6 +1,6 @@
 """Run a coupled penetration with outputs: q_c / f_s against depth (CSV, JSON, PNG), grains
-(VTU/PVD), continuum (VTX) and a picture of both. Used by ``granfe run`` (kind
-``penetration``) and ``demos/2d/cpt_coupled.py``."""
+(VTU/PVD), continuum (VTX), a picture of both, and checkpoints every k FE steps. Used by
+``granfe run`` / ``granfe restart`` (kind ``penetration``) and ``demos/2d/cpt_coupled.py``."""
 
 from __future__ import annotations
 
@@ -20,38 +20,53 @@ __all__ = ["run_penetration"]
 
 def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames: int = 5,
                     fields: bool = True, particles: bool = True, png: bool = True,
-                    progress: bool = True, log=None) -> dict:
-    """Set up, run and write a coupled penetration into ``out``; returns the results dict."""
+                    progress: bool = True, log=None, checkpoint_every: int = 0,
+                    restart: bool = False) -> dict:
+    """Set up, run and write a coupled penetration into ``out``; returns the results dict.
+
+    ``checkpoint_every`` > 0 writes ``out/checkpoint`` every that many FE steps (not after the
+    last); ``restart`` continues from it (same parameters and rank count) instead of settling,
+    writing frames as ``*_from<step>`` series next to the first run's.
+    """
     from coupling.penetration import CouplingUnstable
     from dem.errors import BlowUpError, DemError
     from dem.io import ParticleWriter, save_state
-    from granfe.io import ContinuumWriter, render_png
+    from granfe.io import ContinuumWriter
 
     out = Path(out)
+    if restart and not (out / "checkpoint" / "state.json").exists():
+        raise FileNotFoundError(f"no complete checkpoint in {out / 'checkpoint'} to restart from "
+                                "(output.checkpoint_every = 0, or the run stopped before the first)")
     log = log or (lambda msg: print(msg, flush=True) if comm.rank == 0 else None)
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
     comm.barrier()
     t0 = time.perf_counter()
-    cpt = CoupledPenetration(prm, comm, log=log)
+    cpt = CoupledPenetration(prm, comm, log=log, checkpoint=out / "checkpoint" if restart else None)
     t_setup = time.perf_counter() - t0
-    log(f"set-up {t_setup:.1f} s: {cpt.n_grains} grains, coordination "
-        f"{cpt.contact_stats['coordination']:.2f}; continuum lam = mu = {cpt.material_fe.lam:.3g} Pa, "
-        f"kappa = {cpt.material_fe.kappa:.3g} Pa, rho = {cpt.material_fe.rho:.0f} kg/m^3")
-    grains = ParticleWriter(out, "grains") if (particles and comm.rank == 0) else None
-    writer = ContinuumWriter(cpt.problem, out, name="continuum") if fields else None
-    n_steps = int(np.ceil(prm.depth / prm.velocity / cpt.dt_fe))
+    start = len(cpt.history)
+    m = cpt.material_fe
+    log(f"set-up {t_setup:.1f} s: {cpt.n_grains} grains, {len(cpt.pen_index)} penetrator spheres, "
+        f"coordination {cpt.contact_stats['coordination']:.2f}; continuum lam = mu = {m.lam:.3g} Pa, "
+        f"kappa = {m.kappa:.3g} Pa, rho = {m.rho:.0f} kg/m^3, "
+        f"{cpt.problem.V.dofmap.index_map.size_global * cpt.problem.V.dofmap.index_map_bs} dofs")
+    suffix = f"_from{start:04d}" if start else ""
+    grains = ParticleWriter(out, "grains" + suffix) if (particles and comm.rank == 0) else None
+    writer = ContinuumWriter(cpt.problem, out, name="continuum" + suffix) if fields else None
+    n_steps = cpt.n_steps
     every = max(1, n_steps // frames)
     bar = None
     if progress and comm.rank == 0:
         from tqdm import tqdm
-        bar = tqdm(total=n_steps, unit="FE step", desc="penetration")
+        bar = tqdm(total=n_steps, initial=start, unit="FE step", desc="penetration")
 
     def on_step(h):
         if bar is not None:
             bar.set_postfix(depth=f"{h['depth'] * 1e3:.1f} mm", q_c=f"{h['q_c'] / 1e3:.2f} kPa",
                             step=f"{h['wall_time']:.2f} s")
             bar.update(1)
+        if checkpoint_every and h["step"] % checkpoint_every == 0 and h["step"] != n_steps:
+            cpt.save_checkpoint(out / "checkpoint")
         if h["step"] % every and h["step"] != n_steps:
             return
         if writer is not None:
@@ -80,25 +95,17 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
     if grains is not None:
         grains.close()
     if png:
-        p = cpt.sim.p
-
-        def overlay(plotter, warp):
-            import pyvista
-            cloud = pyvista.PolyData(p.x.copy())
-            cloud["kind"] = p.kind.astype(float)
-            plotter.add_mesh(cloud, scalars="kind", cmap=["white", "red"], point_size=3,
-                             render_points_as_spheres=True, show_scalar_bar=False)
-
-        W = 0.5 * prm.chamber_width
-        render_png(cpt.problem, out / "cpt.png", "u_magnitude", warp=0, overlay=overlay,
-                   box=(-W / 2, W / 2, cpt.surface - min(0.12, prm.chamber_depth), cpt.surface + 0.03),
-                   title=f"|u| of the continuum; grains (red: ghosts, cone), depth {prm.depth * 100:.1f} cm")
+        _picture(cpt, out / "cpt.png")
+    pushed = history[start:]
     results = {"parameters": prm.__dict__, "grains": cpt.n_grains,
-               "continuum": {"lam": cpt.material_fe.lam, "mu": cpt.material_fe.mu,
-                             "kappa": cpt.material_fe.kappa, "rho": cpt.material_fe.rho,
-                             "dofs": cpt.problem.V.dofmap.index_map.size_global},
+               "penetrator_spheres": len(cpt.pen_index),
+               "continuum": {"lam": m.lam, "mu": m.mu, "kappa": m.kappa, "gamma": m.gamma, "rho": m.rho,
+                             "dofs": cpt.problem.V.dofmap.index_map.size_global
+                             * cpt.problem.V.dofmap.index_map_bs},
                "packing": cpt.contact_stats, "dem_dt": cpt.sim.dt, "fe_dt": cpt.dt_fe,
                "dem_steps": cpt.sim.nsteps, "setup_time_s": t_setup, "run_time_s": t_run,
+               "fe_steps_run": len(pushed), "restarted_from_step": start,
+               "wall_time_per_fe_step_s": float(np.median([h["wall_time"] for h in pushed])) if pushed else None,
                "ranks": comm.size, "history": history,
                "q_c_mean_last_half": float(np.mean([h["q_c"] for h in history[len(history) // 2:]]))}
     if comm.rank == 0:
@@ -108,17 +115,61 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
             wr.writeheader()
             wr.writerows(history)
         if png:
-            import matplotlib.pyplot as plt
-
-            depth = np.array([h["depth"] for h in history]) * 100
-            fig, axes = plt.subplots(1, 2, figsize=(8, 5), sharey=True)
-            axes[0].plot([h["q_c"] / 1e3 for h in history], depth)
-            axes[0].set_xlabel("tip resistance q_c [kPa]")
-            axes[0].set_ylabel("depth [cm]")
-            axes[0].invert_yaxis()
-            axes[1].plot([h["f_s"] / 1e3 for h in history], depth)
-            axes[1].set_xlabel("sleeve friction f_s [kPa]")
-            fig.tight_layout()
-            fig.savefig(out / "tip_resistance.png", dpi=120)
-        log(f"{len(history)} FE steps, {cpt.sim.nsteps} DEM steps in {t_run:.1f} s; outputs in {out}")
+            _curves(history, out / "tip_resistance.png")
+        log(f"{len(pushed)} FE steps, {cpt.sim.nsteps} DEM steps in {t_run:.1f} s; outputs in {out}")
     return results
+
+
+def _curves(history, path):
+    import matplotlib.pyplot as plt
+
+    depth = np.array([h["depth"] for h in history]) * 100
+    fig, axes = plt.subplots(1, 2, figsize=(8, 5), sharey=True)
+    axes[0].plot([h["q_c"] / 1e3 for h in history], depth)
+    axes[0].set_xlabel("tip resistance q_c [kPa]")
+    axes[0].set_ylabel("depth [cm]")
+    axes[0].invert_yaxis()
+    axes[1].plot([h["f_s"] / 1e3 for h in history], depth)
+    axes[1].set_xlabel("sleeve friction f_s [kPa]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _picture(cpt, path):
+    """|u| of the continuum and the grains (red: ghosts and penetrator). 3D: the continuum's
+    half y <= 0, cut open at y = 0, with the grains in a slab just in front of the cut."""
+    from granfe.io import render_png
+
+    prm, p = cpt.prm, cpt.sim.p
+    W, s = 0.5 * prm.chamber_width, cpt.surface
+    low = s - min(0.12, prm.chamber_depth)
+    title = (f"|u| of the continuum; grains (red: ghosts, {prm.shape}), depth "
+             f"{cpt.depth * 100:.1f} cm")
+    if prm.dim == 2:
+        def overlay(plotter, warp):
+            import pyvista
+            cloud = pyvista.PolyData(p.x.copy())
+            cloud["kind"] = p.kind.astype(float)
+            plotter.add_mesh(cloud, scalars="kind", cmap=["white", "red"], point_size=3,
+                             render_points_as_spheres=True, show_scalar_bar=False)
+
+        render_png(cpt.problem, path, "u_magnitude", warp=0, overlay=overlay,
+                   box=(-W / 2, W / 2, low, s + 0.03), title=title)
+        return
+    d = 2 * prm.radius
+    slab = (p.x[:, 1] >= -0.5 * d) & (p.x[:, 1] <= 1.5 * d)
+    slab[cpt.pen_index] = p.x[cpt.pen_index, 1] >= 0
+
+    def overlay(plotter, warp):
+        import pyvista
+        cloud = pyvista.PolyData(p.x[slab].copy())
+        cloud["radius"] = p.radius[slab].copy()
+        cloud["kind"] = p.kind[slab].astype(float)
+        balls = cloud.glyph(scale="radius", orient=False,
+                            geom=pyvista.Sphere(radius=1.0, theta_resolution=10, phi_resolution=10))
+        plotter.add_mesh(balls, scalars="kind", cmap=["white", "red"], show_scalar_bar=False)
+
+    reach = 1.5 * (prm.window_half_width + prm.ghost_width * d)
+    render_png(cpt.problem, path, "u_magnitude", warp=0, overlay=overlay,
+               box=(-reach, reach, -reach, 0.0, s - 1.5 * prm.window_depth, s + 0.01), title=title)

@@ -54,28 +54,42 @@ def _write_particles(out: Path, step: int, t: float, x, u, theta, kinds, series:
 
 
 def _summarise_penetration(scene) -> dict:
+    from coupling.penetration import contact_material, dem_time_step
+
     prm = scene.parameters()
     d = 2 * prm.radius
     band = prm.ghost_width * d
-    area = (2 * (prm.window_half_width + band)) * (prm.window_depth + band)
-    grains = area / (np.sqrt(3) / 2 * d * d)
-    from dem import ContactMaterial, Particles, critical_dt
+    dim = prm.dim
+    if dim == 2:
+        area = (2 * (prm.window_half_width + band)) * (prm.window_depth + band)
+        grains = area / (np.sqrt(3) / 2 * d * d)
+    else:  # fcc with a gap of 2 % of a diameter (coupling.penetration.grain_lattice)
+        volume = (2 * (prm.window_half_width + band)) ** 2 * (prm.window_depth + band)
+        grains = volume * 0.74 / 1.02**3 / (np.pi / 6 * d**3)
+    from dem import Particles, critical_dt
     from dem.timestep import DEFAULT_SAFETY
 
-    probe = Particles.spheres(np.zeros((1, 3)), prm.radius * (1 - prm.jitter), prm.density, dim=2)
-    material = ContactMaterial(E=prm.kn, nu=prm.nu, density=prm.density, friction=prm.friction,
-                               restitution=prm.restitution, law="linear", kn=prm.kn,
-                               kt=prm.kt_over_kn * prm.kn)
-    dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [material])  # the DEM's default choice
+    r_min = np.array([prm.radius * (1 - prm.jitter)])
+    dt = dem_time_step(prm, r_min)
+    if dt is None:
+        probe = Particles.spheres(np.zeros((1, 3)), r_min, prm.density, dim=2)
+        dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [contact_material(prm)])  # the DEM's default
     # the size field ramps from fine to coarse over about the window size again
-    window_cells = 4 * (2 * (prm.window_half_width + band) * (prm.window_depth + band)) / prm.element_size_window**2
-    far_cells = 2 * prm.chamber_width * prm.chamber_depth / prm.element_size_far**2
-    nodes = (window_cells + far_cells) / 2
-    return {"kind": "penetration", "dimension": 2, "grains_in_window_and_ghost_band": int(grains),
-            "fe_dofs_estimate": int(3 * nodes), "dem_time_step_estimate_s": float(dt),
+    hw, hf = prm.element_size_window, prm.element_size_far
+    if dim == 2:
+        window_cells = 4 * (2 * (prm.window_half_width + band) * (prm.window_depth + band)) / hw**2
+        far_cells = 2 * prm.chamber_width * prm.chamber_depth / hf**2
+        nodes = (window_cells + far_cells) / 2
+    else:  # ~6 tetrahedra per h^3 cube, ~1/5 node per tetrahedron
+        window = np.pi * 2 * (prm.window_half_width + band) ** 2 * (prm.window_depth + band)
+        chamber = np.pi * prm.chamber_width**2 / 4 * prm.chamber_depth
+        nodes = (6 * 8 * window / hw**3 + 6 * chamber / hf**3) / 5
+    dofs = (3 if dim == 2 else 6) * nodes
+    return {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
+            "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
             "dem_steps_estimate": int((prm.settle_time + prm.depth / prm.velocity) / dt),
             "fe_steps": int(np.ceil(prm.depth / prm.velocity / (prm.substeps * dt))),
-            "memory_estimate_MB": round((grains * 30 * 8 + nodes * 3 * 60 * 8) / 1e6, 1)}
+            "memory_estimate_MB": round((grains * 30 * 8 + dofs * 60 * 8) / 1e6, 1)}
 
 
 def summarise(scene) -> dict:
@@ -218,6 +232,6 @@ def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True) -
     step = json.loads(state.read_text())["step"]
     scene = load_scene(out / "scene.toml")
     if scene.scene.kind != "bonded_punch":
-        raise FileNotFoundError(f"restart of {scene.scene.kind!r} scenes is not supported yet; "
-                                f"the last state of {out} is in {out / 'last_good'} when a run failed")
+        raise FileNotFoundError(f"restart_scene runs bonded_punch scenes; {scene.scene.kind!r} "
+                                "scenes restart through coupling.penetration_run.run_penetration")
     return run_scene(scene, out, comm, progress, start_step=step)

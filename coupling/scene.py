@@ -38,8 +38,10 @@ class SceneInfo:
     def __post_init__(self):
         if self.kind not in KINDS:
             raise SceneError(f"scene.kind must be one of {list(KINDS)}, got {self.kind!r}")
-        if self.dimension != 2:
-            raise SceneError(f"scene.dimension: kind {self.kind!r} is 2D only so far, got {self.dimension!r}")
+        allowed = (2, 3) if self.kind == "penetration" else (2,)
+        if self.dimension not in allowed:
+            raise SceneError(f"scene.dimension must be one of {list(allowed)} for kind {self.kind!r}, "
+                             f"got {self.dimension!r}")
 
 
 @dataclass(frozen=True)
@@ -191,7 +193,8 @@ class Scene(_Tables):
 # ---- penetration scenes ----------------------------------------------------------------------
 @dataclass(frozen=True)
 class Chamber:
-    """Continuum chamber [m] and its element sizes (fine at the window, coarse far)."""
+    """Continuum chamber [m] (width: the diameter of the 3D cylinder) and its element sizes
+    (fine at the window, coarse far)."""
 
     width: float = 0.3
     depth: float = 0.2
@@ -201,8 +204,9 @@ class Chamber:
 
 @dataclass(frozen=True)
 class Grains:
-    """Disks: radius [m] (reduced by up to ``jitter``), linear contacts kn [N/m per m],
-    kt/kn, Coulomb friction, restitution; settled for ``settle_time`` [s] under gravity."""
+    """Grains: radius [m] (reduced by up to ``jitter``), Coulomb friction, restitution;
+    settled for ``settle_time`` [s] under gravity. 2D disks: linear contacts kn [N/m per m],
+    kt/kn. 3D spheres: Hertz-Mindlin with Young's modulus ``youngs_modulus`` [Pa] and nu."""
 
     radius: float = 1.5e-3
     jitter: float = 0.1
@@ -215,6 +219,7 @@ class Grains:
     settle_time: float = 0.3
     gravity: float = 9.81
     seed: int = 1
+    youngs_modulus: float = 2.9e7
 
 
 @dataclass(frozen=True)
@@ -227,7 +232,8 @@ class PenetrationWindow:
 
 @dataclass(frozen=True)
 class Cone:
-    """Cone penetrometer (2D section): radius [m], apex angle [deg], velocity [m/s], depth [m]."""
+    """Penetrator: ``cone`` (60 degree apex by default; the 2D section in 2D) or ``pile``
+    (flat end, 3D): radius [m], apex angle [deg], velocity [m/s], depth [m]."""
 
     shape: str = "cone"
     radius: float = 0.01
@@ -236,8 +242,9 @@ class Cone:
     depth: float = 0.04
 
     def __post_init__(self):
-        if self.shape != "cone":
-            raise SceneError(f"penetrator.shape must be 'cone' for a penetration scene, got {self.shape!r}")
+        if self.shape not in ("cone", "pile"):
+            raise SceneError(f"penetrator.shape must be 'cone' or 'pile' for a penetration scene, "
+                             f"got {self.shape!r}")
 
 
 @dataclass(frozen=True)
@@ -254,14 +261,20 @@ class Exchange:
 
 @dataclass(frozen=True)
 class PenetrationOutput:
+    """Frames of grains and continuum; a checkpoint every ``checkpoint_every`` FE steps
+    (0: none; ``granfe restart`` continues from the last one)."""
+
     frames: int = 5
     fields: bool = True
     particles: bool = True
     png: bool = True
+    checkpoint_every: int = 20
 
     def __post_init__(self):
         if self.frames < 1:
             raise SceneError(f"output.frames must be >= 1, got {self.frames!r}")
+        if self.checkpoint_every < 0:
+            raise SceneError(f"output.checkpoint_every must be >= 0, got {self.checkpoint_every!r}")
 
 
 # PenetrationParameters field -> section.key of the scene
@@ -278,12 +291,14 @@ _PENETRATION_KEYS = {
     "cone_radius": "penetrator.radius", "apex_deg": "penetrator.apex_deg",
     "velocity": "penetrator.velocity", "depth": "penetrator.depth",
     "substeps": "coupling.substeps", "relaxation": "coupling.relaxation",
+    "dim": "scene.dimension", "shape": "penetrator.shape", "youngs_modulus": "grains.youngs_modulus",
 }
 
 
 @dataclass(frozen=True)
 class PenetrationScene(_Tables):
-    """A ``penetration`` scene: a cone pushed into frictional grains coupled to the continuum."""
+    """A ``penetration`` scene: a cone or pile pushed into frictional grains coupled to the
+    continuum, 2D or 3D (``scene.dimension``)."""
 
     scene: SceneInfo = field(default_factory=lambda: SceneInfo(name="cpt_2d", kind="penetration"))
     chamber: Chamber = field(default_factory=Chamber)
@@ -309,7 +324,8 @@ class PenetrationScene(_Tables):
             density=g.density, friction=g.friction, restitution=g.restitution,
             settle_time=g.settle_time, gravity=g.gravity, seed=g.seed, cone_radius=p.radius,
             apex_deg=p.apex_deg, velocity=p.velocity, depth=p.depth, substeps=x.substeps,
-            relaxation=x.relaxation)
+            relaxation=x.relaxation, dim=self.scene.dimension, shape=p.shape,
+            youngs_modulus=g.youngs_modulus)
         try:
             return PenetrationParameters(**values)
         except ValueError as err:

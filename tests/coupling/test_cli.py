@@ -98,3 +98,42 @@ def test_penetration_scene_runs(tmp_path):
     assert results["grains"] > 500 and len(results["history"]) > 3
     assert (out / "grains.pvd").exists() and (out / "tip_resistance.csv").exists()
     assert all(abs(h["q_c"]) < 1e7 for h in results["history"])
+
+
+TINY_3D = ["--set", "chamber.width=0.14", "--set", "chamber.depth=0.08",
+           "--set", "chamber.element_size_window=0.01", "--set", "chamber.element_size_far=0.05",
+           "--set", "window.half_width=0.02", "--set", "window.depth=0.04", "--set", "window.ghost_width=1.5",
+           "--set", "window.handshake=1.0", "--set", "grains.radius=3.5e-3", "--set", "grains.settle_time=0.04",
+           "--set", "penetrator.radius=0.008", "--set", "penetrator.depth=0.008",
+           "--set", "penetrator.velocity=0.8", "--set", "coupling.substeps=20",
+           "--set", "output.checkpoint_every=10", "--set", "output.frames=1", "--set", "output.png=false",
+           "--set", "output.fields=false"]
+
+
+@pytest.mark.slow
+def test_3d_penetration_restart_continues_the_run(tmp_path):
+    """granfe run (16 steps, checkpoint at step 10) then granfe restart from step 10: the
+    restarted steps equal the uninterrupted ones to round-off."""
+    out = tmp_path / "cpt3d"
+    proc = granfe("run", "scenes/cpt_3d.toml", "--out", str(out), "--no-progress", *TINY_3D)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    first = json.loads((out / "results.json").read_text())
+    assert first["grains"] > 300 and first["parameters"]["dim"] == 3
+    assert json.loads((out / "checkpoint" / "state.json").read_text())["step"] == 10
+    proc = granfe("restart", str(out), "--no-progress")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    again = json.loads((out / "results.json").read_text())
+    assert again["restarted_from_step"] == 10
+    a = [(h["q_c"], h["depth"]) for h in first["history"]]
+    b = [(h["q_c"], h["depth"]) for h in again["history"]]
+    assert len(a) == len(b) > 10
+    scale = max(abs(q) for q, _ in a)
+    assert scale > 0 and all(abs(x[0] - y[0]) <= 1e-10 * scale and x[1] == y[1] for x, y in zip(a, b))
+    assert (out / "grains_from0010.pvd").exists()
+
+
+def test_restart_without_checkpoint_is_named(tmp_path):
+    (tmp_path / "scene.toml").write_text(open(ROOT / "scenes/cpt_3d.toml").read())
+    proc = granfe("restart", str(tmp_path), "--no-progress")
+    assert proc.returncode == 1
+    assert "no complete checkpoint" in proc.stderr

@@ -67,3 +67,20 @@ def test_penetration_scene_defaults_and_named_errors(tmp_path):
         load_scene("scenes/cpt_2d.toml", parse_overrides(["grains.kappa=1"]))
     with pytest.raises(SceneError, match=r"scene.kind must be one of"):
         load_scene(write(tmp_path, '[scene]\nkind = "tunnel"\n'))
+
+
+def test_3d_penetration_scenes_load_and_name_errors():
+    cpt, pile = load_scene("scenes/cpt_3d.toml"), load_scene("scenes/pile_3d.toml")
+    assert cpt.parameters().dim == 3 and cpt.parameters().shape == "cone"
+    assert pile.parameters().shape == "pile" and pile.output.checkpoint_every > 0
+    assert cpt.parameters().youngs_modulus == cpt.grains.youngs_modulus
+    with pytest.raises(SceneError, match=r"penetrator.shape = 'pile' needs dim = 3"):
+        load_scene("scenes/cpt_2d.toml", parse_overrides(['penetrator.shape="pile"']))
+    with pytest.raises(SceneError, match=r"scene.dimension must be one of \[2\] for kind 'bonded_punch'"):
+        load_scene("scenes/punch_2d.toml", parse_overrides(["scene.dimension=3"]))
+    with pytest.raises(SceneError, match=r"grains.youngs_modulus must be > 0"):
+        load_scene("scenes/cpt_3d.toml", parse_overrides(["grains.youngs_modulus=-1.0"]))
+    with pytest.raises(SceneError, match=r"must lie inside the chamber"):
+        load_scene("scenes/cpt_3d.toml", parse_overrides(["chamber.width=0.12"]))
+    with pytest.raises(SceneError, match=r"output.checkpoint_every must be >= 0"):
+        load_scene("scenes/cpt_3d.toml", parse_overrides(["output.checkpoint_every=-2"]))
