@@ -10,11 +10,12 @@ from dem.errors import (BlowUpError, DemError, DomainError, MaterialError, Overl
                         TimeStepError)
 from dem.integrate import Simulation
 from dem.neighbours import NeighbourList, build_pairs
+from dem.parallel import DistributedSimulation
 from dem.state import FIXED, FREE, GHOST, Particles
 from dem.timestep import critical_dt, hertz_dt, rayleigh_dt
 from dem.walls import PlaneWall, WallSet, box_walls
 
-__all__ = ["ServoWall", "relax", "unbalanced_force_ratio", "FIXED", "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
+__all__ = ["DistributedSimulation", "ServoWall", "relax", "unbalanced_force_ratio", "FIXED", "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
            "DomainError", "MaterialError", "NeighbourList", "OverlapError", "Particles",
            "PlaneWall", "Simulation", "TimeStepError", "WallSet", "box_walls", "build_pairs",
            "critical_dt", "hertz_dt", "rayleigh_dt"]

@@ -1,0 +1,575 @@
+"""MPI spatial domain decomposition of a DEM run: one `Simulation` per rank, halos of ghosts.
+
+Each rank owns the particles of its subdomain (recursive bisection of the particle box along
+its longest axis, or any ``owner(x) -> ranks`` the caller passes, e.g. the FE partition) and
+holds, as GHOST particles of its local `dem.Simulation`, copies of the other ranks' particles
+within ``2 r_max + halo_skin`` of its owned particles' box. Before every step the owners send
+x, v, omega of those copies *as the coming half-kick and drift will make them* (one
+``Alltoallv`` of a contiguous buffer); a GHOST keeps its prescribed state through the step,
+so the local run's force pass sees the same neighbours as the serial one. A pair of an owned
+particle and a copy is computed on both ranks from identical data, each rank integrating its
+own copy of the pair's tangential history. Only the public `Simulation` API is used.
+
+Why the result equals the serial run to round-off (in practice bit for bit): the local arrays
+are kept in global-id order, so local pairs (i < j) sort as the serial ones; every contact of
+an owned particle is in the local list; the pair loop sums onto particles in pair order. An
+owned particle so sees the same contacts, in the same order, with the same data.
+
+Ownership is fixed between *decompositions*; one happens when some particle would move more
+than ``halo_skin / 2`` since the last one (so no pair outside the halo can have closed). A
+decomposition migrates particles to their new owners with the forces of the last step and
+their contact history, keyed by global ids: a pair's history is authoritative on the owner
+of its lower-id particle, which sends it to both new owners.
+
+mpi4py is imported lazily (``import dem`` stays free of MPI); every public method of
+`DistributedSimulation` is collective.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from dem.contact import ContactMaterial
+from dem.errors import BlowUpError, DomainError, TimeStepError
+from dem.integrate import Simulation
+from dem.neighbours import carry_history
+from dem.state import FREE, GHOST, Particles
+from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
+from dem.walls import PlaneWall, WallSet
+
+__all__ = ["DistributedSimulation", "RecursiveBisection"]
+
+# particle rows exchanged at a decomposition: global id, state, the forces of the last step
+# (the next half-kick needs them)
+GID, X, V, W, RAD, MASS, INER, MAT, KIND = 0, slice(1, 4), slice(4, 7), slice(7, 10), 10, 11, \
+    12, 13, 14
+F, T = slice(15, 18), slice(18, 21)
+NCOL = 21
+# contact history rows: global ids (pair: i < j; wall: particle, wall), spring (3), slip, energy
+HCOL = 7
+
+
+# ---------------------------------------------------------------- ownership
+@dataclass(frozen=True, eq=False)
+class RecursiveBisection:
+    """Recursive coordinate bisection: node k splits along ``axis[k]`` at ``cut[k]`` [m];
+    ``below[k]``/``above[k]`` are child nodes (>= 0) or leaves ``-1 - rank``. Call it on
+    positions (n, 3) to get owner ranks (n,) int64 (a point on a cut goes above)."""
+
+    axis: np.ndarray
+    cut: np.ndarray
+    below: np.ndarray
+    above: np.ndarray
+    nranks: int
+
+    @classmethod
+    def from_points(cls, x, nranks: int) -> RecursiveBisection:
+        """Cuts giving each of ``nranks`` ranks (about) as many of the points x (n, 3) [m],
+        each cut normal to the longest axis of the box of the points it splits."""
+        if not (isinstance(nranks, int | np.integer) and nranks >= 1):
+            raise ValueError(f"nranks must be an int >= 1, got {nranks!r}")
+        x = np.asarray(x, float).reshape(-1, 3)
+        nodes = []  # (axis, cut, below, above)
+
+        def split(pts, r0, r1):
+            if r1 - r0 == 1:
+                return -1 - r0
+            k = len(nodes)
+            nodes.append(None)
+            span = pts.max(axis=0) - pts.min(axis=0) if len(pts) else np.zeros(3)
+            ax = int(np.argmax(span))
+            rm = (r0 + r1) // 2
+            c = np.sort(pts[:, ax])
+            m = int(round(len(c) * (rm - r0) / (r1 - r0)))
+            if len(c) == 0:
+                cut = 0.0
+            elif m <= 0:
+                cut = c[0]
+            elif m >= len(c):
+                cut = np.nextafter(c[-1], np.inf)
+            else:
+                cut = 0.5 * (c[m - 1] + c[m])
+            lo = pts[:, ax] < cut
+            nodes[k] = (ax, float(cut), split(pts[lo], r0, rm), split(pts[~lo], rm, r1))
+            return k
+
+        split(x, 0, int(nranks))
+        a = np.array(nodes, dtype=object).reshape(-1, 4)
+        return cls(a[:, 0].astype(np.int64), a[:, 1].astype(float), a[:, 2].astype(np.int64),
+                   a[:, 3].astype(np.int64), int(nranks))
+
+    def __call__(self, x) -> np.ndarray:
+        x = np.asarray(x, float).reshape(-1, 3)
+        node = np.zeros(x.shape[0], np.int64) if len(self.axis) else np.full(x.shape[0], -1)
+        live = node >= 0
+        while live.any():
+            k = node[live]
+            up = x[live, self.axis[k]] >= self.cut[k]
+            node[live] = np.where(up, self.above[k], self.below[k])
+            live = node >= 0
+        return -1 - node
+
+
+# ---------------------------------------------------------------- kernels
+@njit(cache=True)
+def _pack_predicted(idx, x, v, omega, force, torque, mass, inertia, kind, g, h, dt, buf):
+    """Rows [x, v, omega] (9,) of particles idx after the next half-kick (h [s]) and drift
+    (dt [s]) of velocity Verlet: FREE particles as `Simulation.step` moves them (the same
+    operations in the same order, so the same bits), the others as prescribed now."""
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        for c in range(3):
+            if kind[i] == 0:
+                u = v[i, c] + h * (force[i, c] / mass[i] + g[c])
+                buf[k, c] = x[i, c] + dt * u
+                buf[k, 3 + c] = u
+                buf[k, 6 + c] = omega[i, c] + h * torque[i, c] / inertia[i]
+            else:
+                buf[k, c], buf[k, 3 + c], buf[k, 6 + c] = x[i, c], v[i, c], omega[i, c]
+
+
+@njit(cache=True)
+def _unpack(idx, buf, x, v, omega):
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        for c in range(3):
+            x[i, c] = buf[k, c]
+            v[i, c] = buf[k, 3 + c]
+            omega[i, c] = buf[k, 6 + c]
+
+
+@njit(cache=True)
+def _next_disp2(x, v, force, mass, kind, owned, g, h, dt, xref):
+    """Largest squared distance [m^2] of owned particles from xref after the next drift
+    (particles that are not FREE: after dt v, their prescribed motion)."""
+    d2 = 0.0
+    for i in range(x.shape[0]):
+        if not owned[i]:
+            continue
+        s = 0.0
+        for c in range(3):
+            u = v[i, c] + h * (force[i, c] / mass[i] + g[c]) if kind[i] == 0 else v[i, c]
+            a = x[i, c] + dt * u - xref[i, c]
+            s += a * a
+        d2 = max(d2, s)
+    return d2
+
+
+# ---------------------------------------------------------------- communication
+_MPI = None
+
+
+def _mpi():
+    """mpi4py.MPI, imported on first use (``import dem`` stays free of MPI)."""
+    global _MPI
+    if _MPI is None:
+        from mpi4py import MPI
+
+        _MPI = MPI
+    return _MPI
+
+
+def _spec(buf, rows_per_rank):
+    """mpi4py buffer spec [buf, (counts, displacements), DOUBLE] for rows of buf."""
+    c = np.asarray(rows_per_rank, np.int64) * (buf.shape[1] if buf.ndim > 1 else 1)
+    return [buf, (c, np.concatenate([[0], np.cumsum(c)[:-1]])), _mpi().DOUBLE]
+
+
+def _exchange_rows(comm, rows, dest):
+    """Send row k of rows (n, K) float64 to rank dest[k]; returns the rows received (m, K),
+    ordered by source rank, then by the sender's order."""
+    order = np.argsort(dest, kind="stable")
+    send = np.ascontiguousarray(rows[order])
+    scount = np.bincount(dest, minlength=comm.size).astype(np.int64)
+    rcount = np.empty_like(scount)
+    comm.Alltoall(scount, rcount)
+    recv = np.empty((int(rcount.sum()), rows.shape[1]))
+    comm.Alltoallv(_spec(send, scount), _spec(recv, rcount))
+    return recv
+
+
+def _agree(comm, error):
+    """Raise on every rank the error (an exception or a message) of the first rank that has
+    one, so that no rank is left waiting in a collective call."""
+    bad = [e for e in comm.allgather(error) if e is not None]
+    if bad:
+        raise bad[0] if isinstance(bad[0], Exception) else ValueError(bad[0])
+
+
+# ---------------------------------------------------------------- the local run
+class _LocalSimulation(Simulation):
+    """`Simulation` of one rank's owned particles plus halo copies (GHOST). Its own blow-up
+    and domain checks are off: an error on one rank alone would leave the others waiting in
+    a collective call, so `DistributedSimulation` checks collectively."""
+
+    def _check(self):
+        pass
+
+
+# ---------------------------------------------------------------- the distributed run
+class DistributedSimulation:
+    """A `dem.Simulation` split over the ranks of ``comm`` by space, with halo exchange.
+
+    Args:
+        particles: the global `Particles` on rank 0 (ignored, may be None, elsewhere);
+            global id = row. materials, walls, gravity, dt, safety, force_dt, v_max,
+            domain, allow_overlap, blowup_factor, check_every, state_path: as
+            `dem.Simulation` (dt is chosen on rank 0 from all particles, so it is the
+            global minimum; set wall velocities through ``walls`` on every rank alike).
+        comm: mpi4py communicator (default COMM_WORLD).
+        owner: ``owner(x) -> ranks``: positions (n, 3) [m] -> ints in [0, comm.size),
+            called collectively on each rank's owned particles at every decomposition
+            (None: `RecursiveBisection` of the initial positions).
+        skin: Verlet skin of the local neighbour lists [m] (default 0.2 r_max, as
+            `Simulation`). halo_skin: the decomposition's skin [m] (default = skin): halo
+            width 2 r_max + halo_skin; a new decomposition when a particle would move more
+            than halo_skin / 2 since the last one.
+
+    Attributes: ``local`` (this rank's `Simulation`, None if it holds no particle),
+    ``owned`` (bool mask of its owned particles), ``gid`` (their global ids), ``time``,
+    ``nsteps``, ``dt``, ``decompositions``, ``migrated`` (particles that changed rank, over
+    all decompositions and ranks).
+    """
+
+    def __init__(self, particles, materials, walls=(), gravity=(0.0, 0.0, 0.0), dt=None, *,
+                 comm=None, owner=None, safety=None, force_dt=False, v_max=None, skin=None,
+                 halo_skin=None, domain=None, allow_overlap=False, blowup_factor=10.0,
+                 check_every=100, state_path=None):
+        self.comm = _mpi().COMM_WORLD if comm is None else comm
+        mats = [materials] if isinstance(materials, ContactMaterial) else list(materials)
+        self.materials = mats
+        self.walls = WallSet(walls)
+        self.gravity = np.asarray(gravity, float).reshape(3)
+        self.domain = None if domain is None else np.asarray(domain, float).reshape(2, 3)
+        self.blowup_factor, self.check_every = float(blowup_factor), int(check_every)
+        self.state_path = state_path or os.path.join(os.getcwd(), "dem_last_good_state.npz")
+        chunk = self._set_up_on_root(particles, dt, safety, force_dt, v_max, skin, halo_skin,
+                                     allow_overlap, owner)
+        self.owner = owner if owner is not None else self._bisection
+        self.time, self.nsteps, self.decompositions, self.migrated = 0.0, 0, 0, 0
+        self._bank = {}  # works done in the local runs before the last decomposition
+        self.local, self._plan = None, None
+        self._decompose(chunk)
+        # energy put in at t = 0 for the blow-up check (halo pairs count twice: a bound)
+        self._e0 = float(self.kinetic_energy().sum()) + self._sum("elastic")
+        self._good = None
+        self._check()
+
+    # ---------------------------------------------------------------- set-up
+    def _set_up_on_root(self, particles, dt, safety, force_dt, v_max, skin, halo_skin,
+                        allow_overlap, owner):
+        """Checks and the time step on rank 0, the particles scattered in id blocks."""
+        comm, err, info, blocks = self.comm, None, None, None
+        if comm.rank == 0:
+            try:
+                p = particles
+                if not isinstance(p, Particles):
+                    raise ValueError("particles must be a dem.Particles on rank 0")
+                if p.material.max(initial=0) >= len(self.materials):
+                    raise ValueError(f"particles.material refers to material "
+                                     f"{p.material.max()} but only {len(self.materials)} given")
+                safety = DEFAULT_SAFETY[self.materials[0].law] if safety is None else safety
+                dt = choose_dt(dt, critical_dt(p, self.materials, v_max), safety, force_dt)
+                p.check_overlaps(allow=allow_overlap)
+                rmax = float(p.radius.max())
+                skin = 0.2 * rmax if skin is None else float(skin)
+                halo_skin = skin if halo_skin is None else float(halo_skin)
+                if not (skin >= 0 and halo_skin > 0):
+                    raise ValueError(f"skin must be >= 0 m and halo_skin > 0 m, got "
+                                     f"{skin!r}, {halo_skin!r}")
+                rows = np.zeros((p.n, NCOL))
+                rows[:, GID] = np.arange(p.n)
+                rows[:, X], rows[:, V], rows[:, W] = p.x, p.v, p.omega
+                rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius, p.mass, p.inertia
+                rows[:, MAT], rows[:, KIND] = p.material, p.kind
+                blocks = np.array_split(rows, comm.size)
+                rcb = None if owner is not None else RecursiveBisection.from_points(
+                    p.x, comm.size)
+                info = (dt, rmax, skin, halo_skin, p.n, p.dim, rcb)
+            except Exception as e:  # raised on every rank, not only here
+                err = e
+        _agree(comm, err)
+        (self.dt, self.rmax, self.skin, self.halo_skin, self.ngid, self.dim,
+         self._bisection) = comm.bcast(info, root=0)
+        return comm.scatter(blocks, root=0)
+
+    # ---------------------------------------------------------------- decomposition
+    def _owned_rows(self):
+        """Rows of the owned particles, and the authoritative contact history: non-zero
+        entries of the pairs whose lower id is owned and of owned particles' wall contacts,
+        with the pairs' local indices (k) for routing."""
+        s, own = self.local, self.owned
+        oi = np.flatnonzero(own)
+        p = s.p
+        rows = np.empty((len(oi), NCOL))
+        rows[:, GID] = self.gid[oi]
+        rows[:, X], rows[:, V], rows[:, W] = p.x[oi], p.v[oi], p.omega[oi]
+        rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius[oi], p.mass[oi], p.inertia[oi]
+        rows[:, MAT], rows[:, KIND] = p.material[oi], p.kind[oi]
+        rows[:, F], rows[:, T] = p.force[oi], p.torque[oi]
+        nl = s.nl
+
+        def entries(i, j, hist, slip, etan):
+            k = np.flatnonzero(own[i] & ((hist != 0).any(axis=1) | (slip != 0) | (etan != 0)))
+            return k, np.column_stack([self.gid[i[k]], j[k], hist[k], slip[k], etan[k]])
+
+        pairs = entries(nl.pi, self.gid[nl.pj], nl.hist, nl.slip, nl.etan)
+        wall = entries(nl.wi, nl.ww, nl.whist, nl.wslip, nl.wetan)
+        return oi, rows, pairs, wall
+
+    def _new_owners(self, x):
+        ranks = np.asarray(self.owner(x))
+        err = None  # a message, raised as ValueError on every rank
+        if ranks.shape != (x.shape[0],) or not np.issubdtype(ranks.dtype, np.integer) or (
+                len(ranks) and (ranks.min() < 0 or ranks.max() >= self.comm.size)):
+            err = (f"owner(x) must return ints in [0, {self.comm.size}) of shape "
+                   f"({x.shape[0]},); got dtype {ranks.dtype}, shape {ranks.shape}")
+        _agree(self.comm, err)
+        return ranks.astype(np.int64)
+
+    def _decompose(self, chunk=None):
+        """Collective: new owners, migration with history, halos, a new local run."""
+        comm, me = self.comm, self.comm.rank
+        empty = np.empty((0, HCOL))
+        if chunk is not None:
+            rows, pairs, wall = chunk, empty, empty
+            new = self._new_owners(rows[:, X])
+        else:
+            self._check_domain()
+            s = self.local
+            if s is not None:
+                oi, rows, (kp, pairs), (kw, wall) = self._owned_rows()
+                en = s.energy()  # works of this local run: banked
+                for k in ("work_gravity", "work_walls", "work_ghosts"):
+                    self._bank[k] = self._bank.get(k, 0.0) + en[k]
+            else:
+                oi, rows, kp, kw = np.empty(0, np.int64), np.empty((0, NCOL)), [], []
+                pairs = wall = empty
+            new = self._new_owners(rows[:, X])
+            # the new owner of every halo copy, from its present owner
+            owner_of = np.full(0 if s is None else s.p.n, -1, np.int64)
+            owner_of[oi] = new
+            owner_of = self._forward(owner_of)
+            if s is not None:
+                d1, d2 = owner_of[s.nl.pi[kp]], owner_of[s.nl.pj[kp]]
+                two = d2 != d1  # both new owners of the pair need its history
+                pairs, pdest = np.vstack([pairs, pairs[two]]), np.r_[d1, d2[two]]
+                wdest = owner_of[s.nl.wi[kw]]
+            else:
+                pdest = wdest = np.empty(0, np.int64)
+            pairs = _exchange_rows(comm, pairs, pdest)
+            wall = _exchange_rows(comm, wall, wdest)
+            self.migrated += int(comm.allreduce(int((new != me).sum())))
+        own = _exchange_rows(comm, rows, new)
+        halo = self._halo_rows(own)
+        self._build_local(own, halo, pairs, wall, carried=chunk is None)
+        self.decompositions += 1
+
+    def _halo_rows(self, own):
+        """Copies of this rank's particles to the ranks whose owned box, inflated by the halo
+        width, contains them; returns the copies received, in plan order."""
+        comm = self.comm
+        x = own[:, X]
+        box = np.array([x.min(axis=0), x.max(axis=0)]) if len(x) else \
+            np.array([np.full(3, np.inf), np.full(3, -np.inf)])
+        boxes = np.array(comm.allgather(box))
+        reach = (2.0 * self.rmax + self.halo_skin) * (1.0 + 1e-9)
+        idx, dest = [np.empty(0, np.int64)], [np.empty(0, np.int64)]
+        for r in range(comm.size):
+            if r != comm.rank:
+                k = np.flatnonzero(((x >= boxes[r, 0] - reach) & (x <= boxes[r, 1] + reach))
+                                   .all(axis=1))
+                idx.append(k)
+                dest.append(np.full(len(k), r, np.int64))
+        self._send_own, self._send_dest = np.concatenate(idx), np.concatenate(dest)
+        return _exchange_rows(comm, own[self._send_own], self._send_dest)
+
+    def _build_local(self, own, halo, pairs, wall, carried):
+        """The local `Simulation` of owned + halo rows in global-id order, the halo plan,
+        and (``carried``: after t = 0) the forces and contact history brought along."""
+        comm = self.comm
+        rows = np.vstack([own, halo])
+        is_halo = np.r_[np.zeros(len(own), bool), np.ones(len(halo), bool)]
+        order = np.argsort(rows[:, GID], kind="stable")
+        rows, is_halo = rows[order], is_halo[order]
+        where = np.empty(len(rows), np.int64)
+        where[order] = np.arange(len(rows))  # local index of row k of [own; halo]
+        scount = np.bincount(self._send_dest, minlength=comm.size).astype(np.int64)
+        rcount = np.empty_like(scount)
+        comm.Alltoall(scount, rcount)
+        send, recv = where[self._send_own], where[len(own):]
+        self._plan = (send, recv, _spec(np.empty((len(send), 9)), scount),
+                      _spec(np.empty((len(recv), 9)), rcount), scount, rcount)
+        self.gid, self.owned = rows[:, GID].astype(np.int64), ~is_halo
+        self._xref = rows[:, X].copy()
+        if len(rows) == 0:
+            self.local = None
+            return
+        kind = rows[:, KIND].astype(np.int8)
+        kind[is_halo & (kind == FREE)] = GHOST
+        p = Particles(rows[:, X], rows[:, V], rows[:, W], rows[:, RAD], rows[:, MASS],
+                      rows[:, INER], rows[:, MAT].astype(np.int32), kind, self.dim)
+        w = self.walls
+        specs = [PlaneWall(tuple(w.point[k]), tuple(w.normal[k]), tuple(w.velocity[k]),
+                           int(w.material[k])) for k in range(len(w))]
+        sim = _LocalSimulation(p, self.materials, specs, self.gravity, self.dt, force_dt=True,
+                               skin=self.skin, allow_overlap=True)
+        # the local run continues the walls exactly (a spec re-normalises the normal)
+        for a in ("point", "normal", "velocity", "force"):
+            getattr(sim.walls, a)[:] = getattr(w, a)
+        self.walls, self.local = sim.walls, sim
+        if carried:  # the constructor's force pass started from no history: replace it
+            p.force[:], p.torque[:] = rows[:, F], rows[:, T]
+            sim.nl.build(p.x, p.radius, sim.walls.point, sim.walls.normal)
+            self._install_history(sim.nl, pairs, wall)
+
+    def _install_history(self, nl, pairs, wall):
+        """Contact history rows keyed by global ids into the neighbour list (pairs not
+        received start from zero: they are new, or of two halo copies)."""
+        g, n, nw = self.gid, self.ngid, max(len(self.walls), 1)
+        for rows, key, names, m in (
+                (pairs, g[nl.pi] * n + g[nl.pj], ("hist", "slip", "etan"), n),
+                (wall, g[nl.wi] * nw + nl.ww, ("whist", "wslip", "wetan"), nw)):
+            keys = rows[:, 0].astype(np.int64) * m + rows[:, 1].astype(np.int64)
+            keys, first = np.unique(keys, return_index=True)  # a pair sent twice: same data
+            r = rows[first]
+            new = carry_history(keys, key, np.ascontiguousarray(r[:, 2:5]),
+                                r[:, 5].astype(np.int8), r[:, 6].copy())
+            for name, a in zip(names, new, strict=True):
+                setattr(nl, name, a)
+
+    # ---------------------------------------------------------------- halo exchange
+    def _refresh(self):
+        """Owners' x, v, omega after the coming half-kick and drift into their halo copies
+        (collective, once per step): GHOST copies keep them through the local step."""
+        send, recv, sspec, rspec, _, _ = self._plan
+        s = self.local
+        if s is not None:
+            p = s.p
+            _pack_predicted(send, p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia,
+                            p.kind, self.gravity, 0.5 * self.dt, self.dt, sspec[0])
+        self.comm.Alltoallv(sspec, rspec)
+        if s is not None:
+            _unpack(recv, rspec[0], s.p.x, s.p.v, s.p.omega)
+
+    def _forward(self, values):
+        """Int values (n_local,) of owned particles copied into their halo copies."""
+        send, recv, _, _, sc, rc = self._plan
+        rbuf = np.empty(len(recv))
+        self.comm.Alltoallv(_spec(values[send].astype(float), sc), _spec(rbuf, rc))
+        values[recv] = rbuf.astype(values.dtype)
+        return values
+
+    # ---------------------------------------------------------------- stepping
+    def step(self, n: int = 1):
+        """Advance n steps of dt on every rank (collective)."""
+        for _ in range(int(n)):
+            if self._must_decompose():
+                self._decompose()
+                if self._must_decompose():
+                    raise TimeStepError(f"a particle moves more than halo_skin/2 = "
+                                        f"{0.5 * self.halo_skin:.4g} m in one step (dt = "
+                                        f"{self.dt:.4g} s): raise halo_skin or lower dt")
+            self._refresh()
+            if self.local is not None:
+                self.local.step(1)
+            else:
+                self.walls.advance(self.dt)
+            self.time += self.dt
+            self.nsteps += 1
+            if self.nsteps % self.check_every == 0:
+                self._check()
+        if self.nsteps % self.check_every:
+            self._check()
+
+    def _must_decompose(self) -> bool:
+        s, d2 = self.local, 0.0
+        if s is not None:
+            p = s.p
+            d2 = _next_disp2(p.x, p.v, p.force, p.mass, p.kind, self.owned, self.gravity,
+                             0.5 * self.dt, self.dt, self._xref)
+        return self.comm.allreduce(d2, op=_mpi().MAX) > (0.5 * self.halo_skin) ** 2
+
+    # ---------------------------------------------------------------- results (collective)
+    def kinetic_energy(self) -> np.ndarray:
+        """(translational, rotational) kinetic energy of all FREE particles [J]."""
+        k = np.zeros(2) if self.local is None else self.local.kinetic_energy()
+        return self.comm.allreduce(k)
+
+    def _sum(self, key) -> float:
+        v = 0.0 if self.local is None else float(self.local.energy()[key])
+        return float(self.comm.allreduce(v + self._bank.get(key, 0.0)))
+
+    def energy(self) -> dict:
+        """The global energies that split exactly by owner [J]: kinetic
+        (translational, rotational) and the work of gravity on all FREE particles.
+
+        The rest of the `Simulation.energy` ledger (elastic, dissipated, walls, ghosts) is
+        not offered: a local run books a pair across ranks on both ranks and its halo
+        copies' wall contacts, and the public API gives no per-contact split."""
+        kt, kr = self.kinetic_energy()
+        return dict(kinetic_translational=float(kt), kinetic_rotational=float(kr),
+                    work_gravity=self._sum("work_gravity"))
+
+    def gather(self, root: int = 0) -> dict | None:
+        """On ``root``: x, v, omega, force, torque (N, 3) in global-id order and ``rank``
+        (N,) (the owner); None elsewhere."""
+        s = self.local
+        keys = ("x", "v", "omega", "force", "torque")
+        if s is None:
+            part = (np.empty(0, np.int64), {k: np.empty((0, 3)) for k in keys})
+        else:
+            oi = np.flatnonzero(self.owned)
+            part = (self.gid[oi], {k: getattr(s.p, k)[oi] for k in keys})
+        parts = self.comm.gather(part, root=root)
+        if self.comm.rank != root:
+            return None
+        gid = np.concatenate([q[0] for q in parts])
+        order = np.argsort(gid)
+        out = {k: np.concatenate([q[1][k] for q in parts])[order] for k in keys}
+        out["rank"] = np.concatenate([np.full(len(q[0]), r) for r, q in enumerate(parts)])[
+            order]
+        return out
+
+    # ---------------------------------------------------------------- checks
+    def _check_domain(self):
+        err = None
+        if self.domain is not None and self.local is not None:
+            p, (lo, hi) = self.local.p, self.domain
+            out = self.owned & (p.kind == FREE) & ((p.x < lo) | (p.x > hi)).any(axis=1)
+            if out.any():
+                i = int(np.flatnonzero(out)[0])
+                err = DomainError(f"particle {self.gid[i]} left the domain box {lo.tolist()}"
+                                  f"..{hi.tolist()} at x = {p.x[i].tolist()} (t = "
+                                  f"{self.time:.6g} s, step {self.nsteps})")
+        _agree(self.comm, err)
+
+    def _check(self):
+        """Collective blow-up check (NaN, or kinetic energy above blowup_factor x the energy
+        put in); on failure rank 0 writes the last good state, gathered."""
+        s = self.local
+        finite = s is None or all(np.isfinite(a).all() for a in (s.p.x, s.p.v, s.p.omega))
+        ok = finite = bool(self.comm.allreduce(int(finite), op=_mpi().MIN))
+        if finite:
+            ke = float(self.kinetic_energy().sum())
+            budget = self._e0 + sum(abs(self._sum(k)) for k in ("work_gravity", "work_walls",
+                                                                 "work_ghosts"))
+            ok = ke <= self.blowup_factor * budget + 1e-300
+        if not ok:
+            why = "NaN in x, v or omega" if not finite else "kinetic energy jump"
+            good = self.comm.gather(self._good, root=0)
+            if self.comm.rank == 0 and all(g is not None for g in good):
+                st = np.vstack(good)
+                st = st[np.argsort(st[:, GID])]
+                np.savez(self.state_path, gid=st[:, GID], x=st[:, X], v=st[:, V],
+                         omega=st[:, W], time=self._good_at[0], step=self._good_at[1])
+            raise BlowUpError(f"blow-up ({why}) at step {self.nsteps}, t = {self.time:.6g} s "
+                              f"(dt = {self.dt:.4g} s); last good state written to "
+                              f"{self.state_path}", self.state_path)
+        self._check_domain()
+        self._good = np.empty((0, NCOL)) if s is None else self._owned_rows()[1]
+        self._good_at = (self.time, self.nsteps)
