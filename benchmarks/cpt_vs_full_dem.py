@@ -1,13 +1,24 @@
-"""Coupled cone penetration against full DEM: tip-resistance error against run time.
+"""Coupled cone penetration against full DEM: tip-resistance error against run time, and the
+strong scaling of the 3D coupled scene.
 
-The 2D penetration scene at reduced size runs once fully as DEM (grains fill the whole
+2D: the penetration scene at reduced size runs once fully as DEM (grains fill the whole
 chamber, walls around) and coupled with several DE-window sizes. The error is the relative
 RMS difference of the tip resistance q_c, smoothed over ``--smooth`` of depth, against the
 full DEM once the cone is embedded, plus the difference of the mean q_c over the last half
-of the push. Run times are wall times of set-up (settling) and push. Writes
-``results.json`` and ``cpt_vs_full_dem.png`` (q_c curves and the error-time front).
+of the push. Run times are wall times of set-up (settling) and push.
 
-Run: ``python benchmarks/cpt_vs_full_dem.py`` (about 5 minutes on 2 cores).
+3D strong scaling: the reduced 3D coupled cone scene (a few thousand spheres) is run with
+``mpiexec -n 1`` and ``-n 2`` (``NUMBA_NUM_THREADS=1``), each ``--scaling-repeats`` times;
+the figure is the wall time per FE step (min and median over the timed steps of all
+repeats), with the DEM part of it (the grains are replicated on every rank, so only the FE
+solve and the exchange can scale).
+
+Writes ``results.json`` and ``cpt_vs_full_dem.png`` (q_c curves, the error-time front, the
+scaling line). ``--parts scaling`` runs only the 3D line and keeps the 2D entries of an
+existing ``results.json`` in ``--out``.
+
+Run: ``python benchmarks/cpt_vs_full_dem.py`` (about 5 minutes on 2 idle cores for 2D, a few
+more for the scaling line).
 """
 
 from __future__ import annotations
@@ -15,6 +26,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -31,12 +44,69 @@ parser.add_argument("--out", type=Path, default=Path("output/cpt_vs_full_dem"))
 parser.add_argument("--windows", type=float, nargs="+", default=[0.03, 0.045] if SHORT else [0.03, 0.04, 0.06])
 parser.add_argument("--depth", type=float, default=0.012 if SHORT else 0.03)
 parser.add_argument("--smooth", type=float, default=0.005, help="smoothing length of q_c [m]")
+parser.add_argument("--parts", choices=["all", "2d", "scaling"], default="all")
+parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2], help="rank counts of the 3D line")
+parser.add_argument("--scaling-steps", type=int, default=4 if SHORT else 12, help="FE steps timed per run")
+parser.add_argument("--scaling-repeats", type=int, default=1 if SHORT else 2)
+parser.add_argument("--scaling-worker", type=Path, default=None, help=argparse.SUPPRESS)
 args = parser.parse_args()
 comm = MPI.COMM_WORLD
 log = (lambda m: print(m, flush=True)) if comm.rank == 0 else (lambda m: None)
 
 base = dict(chamber_width=0.2, chamber_depth=0.12, radius=2e-3, depth=args.depth, velocity=0.2,
             settle_time=0.1 if SHORT else 0.3, element_size_window=0.008, element_size_far=0.03)
+# the reduced 3D scene of the scaling line (scenes/cpt_3d.toml at ~1/4 of its grains)
+scaling = dict(dim=3, chamber_width=0.2, chamber_depth=0.12, window_half_width=0.025,
+               window_depth=0.045, ghost_width=1.5, handshake=1.5, radius=2.5e-3, cone_radius=0.008,
+               depth=0.02, velocity=0.4, settle_time=0.05, substeps=20,
+               element_size_window=0.005 if not SHORT else 0.008, element_size_far=0.03)
+
+
+def scaling_worker(path: Path) -> None:
+    """One run of the 3D line under the current communicator: per-step wall times to ``path``."""
+    t0 = time.perf_counter()
+    model = CoupledPenetration(PenetrationParameters(**scaling), comm, log=lambda m: None)
+    setup = time.perf_counter() - t0
+    comm.barrier()
+    # the first step factorises the FE matrix and the projection: time the steps after it
+    history = model.run(steps=args.scaling_steps + 1)[1:]
+    if comm.rank == 0:
+        V = model.problem.V
+        path.write_text(json.dumps({
+            "ranks": comm.size, "grains": model.n_grains, "penetrator_spheres": len(model.pen_index),
+            "dofs": V.dofmap.index_map.size_global * V.dofmap.index_map_bs, "setup_s": setup,
+            "step_s": [h["wall_time"] for h in history], "dem_s": [h["dem_time"] for h in history],
+            "q_c": [h["q_c"] for h in history], "load_average_1min": os.getloadavg()[0]}))
+
+
+def scaling_line() -> list[dict]:
+    """Launch the workers (serially: one rank count at a time) and summarise them."""
+    mpiexec = Path(sys.executable).parent / "mpiexec"
+    points = []
+    for ranks in args.ranks:
+        runs = []
+        for repeat in range(args.scaling_repeats):
+            path = args.out / f"scaling_n{ranks}_r{repeat}.json"
+            cmd = [str(mpiexec), "-n", str(ranks), sys.executable, __file__, "--scaling-worker", str(path),
+                   "--scaling-steps", str(args.scaling_steps)]
+            proc = subprocess.run(cmd, capture_output=True, text=True,
+                                  env={**os.environ, "NUMBA_NUM_THREADS": "1"})
+            if proc.returncode:
+                raise RuntimeError(f"scaling run on {ranks} ranks failed:\n{proc.stderr[-3000:]}")
+            runs.append(json.loads(path.read_text()))
+        step = np.concatenate([r["step_s"] for r in runs])
+        dem = np.concatenate([r["dem_s"] for r in runs])
+        points.append({"ranks": ranks, "grains": runs[0]["grains"], "dofs": runs[0]["dofs"],
+                       "penetrator_spheres": runs[0]["penetrator_spheres"],
+                       "repeats": len(runs), "steps_per_repeat": args.scaling_steps,
+                       "step_s_min": float(step.min()), "step_s_median": float(np.median(step)),
+                       "dem_s_median": float(np.median(dem)),
+                       "load_average_1min": [r["load_average_1min"] for r in runs],
+                       "fe_and_exchange_s_median": float(np.median(step - dem)),
+                       "setup_s": [r["setup_s"] for r in runs], "runs": runs})
+        log(f"3D, {ranks} rank(s): {runs[0]['grains']} grains, {runs[0]['dofs']} dofs, per FE step "
+            f"min {step.min():.3f} s, median {np.median(step):.3f} s (DEM {np.median(dem):.3f} s)")
+    return points
 
 
 def smoothed(history):
@@ -54,54 +124,96 @@ def timed(factory):
     return model, history, t1 - t0, time.perf_counter() - t1
 
 
-full_prm = PenetrationParameters(**base, window_half_width=max(args.windows), window_depth=0.08)
-full, h_full, setup_full, run_full = timed(lambda: DemPenetration(full_prm, log=log))
-d_ref, q_ref = smoothed(h_full)
-# compare once the cone tip has gone a third of its height into the grains
-embedded = d_ref > full_prm.cone_radius / np.tan(np.radians(full_prm.apex_deg) / 2) / 3
-log(f"full DEM: {full.n_grains} grains, set-up {setup_full:.1f} s, push {run_full:.1f} s")
-points = []
-for a in args.windows:
-    prm = PenetrationParameters(**base, window_half_width=a, window_depth=min(0.08, 0.11))
-    model, h, setup, run = timed(lambda: CoupledPenetration(prm, comm, log=log))
-    d, q = smoothed(h)
-    q_on_ref = np.interp(d_ref, d, q)
-    scale = np.sqrt(np.mean(q_ref[embedded] ** 2))
-    err = float(np.sqrt(np.mean((q_on_ref[embedded] - q_ref[embedded]) ** 2)) / scale)
-    half = len(h) // 2
-    mean_err = float(abs(np.mean([x["q_c"] for x in h[half:]]) - np.mean([x["q_c"] for x in h_full[half:]]))
-                     / abs(np.mean([x["q_c"] for x in h_full[half:]])))
-    points.append({"window_half_width": a, "grains": model.n_grains, "setup_s": setup, "run_s": run,
-                   "total_s": setup + run, "q_c_rms_error": err, "q_c_mean_error_last_half": mean_err,
-                   "history": h})
-    log(f"window {a:.3f} m: {model.n_grains} grains, set-up {setup:.1f} s, push {run:.1f} s, "
-        f"q_c RMS error {err:.1%}, mean q_c error {mean_err:.1%}")
+def coupled_vs_full() -> dict:
+    full_prm = PenetrationParameters(**base, window_half_width=max(args.windows), window_depth=0.08)
+    full, h_full, setup_full, run_full = timed(lambda: DemPenetration(full_prm, log=log))
+    d_ref, q_ref = smoothed(h_full)
+    # compare once the cone tip has gone a third of its height into the grains
+    embedded = d_ref > full_prm.cone_radius / np.tan(np.radians(full_prm.apex_deg) / 2) / 3
+    log(f"full DEM: {full.n_grains} grains, set-up {setup_full:.1f} s, push {run_full:.1f} s")
+    points = []
+    for a in args.windows:
+        prm = PenetrationParameters(**base, window_half_width=a, window_depth=min(0.08, 0.11))
+        model, h, setup, run = timed(lambda: CoupledPenetration(prm, comm, log=log))
+        d, q = smoothed(h)
+        q_on_ref = np.interp(d_ref, d, q)
+        scale = np.sqrt(np.mean(q_ref[embedded] ** 2))
+        err = float(np.sqrt(np.mean((q_on_ref[embedded] - q_ref[embedded]) ** 2)) / scale)
+        half = len(h) // 2
+        mean_err = float(abs(np.mean([x["q_c"] for x in h[half:]]) - np.mean([x["q_c"] for x in h_full[half:]]))
+                         / abs(np.mean([x["q_c"] for x in h_full[half:]])))
+        points.append({"window_half_width": a, "grains": model.n_grains, "setup_s": setup, "run_s": run,
+                       "total_s": setup + run, "q_c_rms_error": err, "q_c_mean_error_last_half": mean_err,
+                       "history": h})
+        log(f"window {a:.3f} m: {model.n_grains} grains, set-up {setup:.1f} s, push {run:.1f} s, "
+            f"q_c RMS error {err:.1%}, mean q_c error {mean_err:.1%}")
+    return {"parameters": base,
+            "full_dem": {"grains": full.n_grains, "setup_s": setup_full, "run_s": run_full,
+                         "total_s": setup_full + run_full, "history": h_full},
+            "coupled": points}
 
-if comm.rank == 0:
+
+def plot(results: dict) -> None:
     import matplotlib.pyplot as plt
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    results = {"inputs": vars(args) | {"out": str(args.out), "short": SHORT, "ranks": comm.size},
-               "parameters": base,
-               "full_dem": {"grains": full.n_grains, "setup_s": setup_full, "run_s": run_full,
-                            "total_s": setup_full + run_full, "history": h_full},
-               "coupled": points}
-    (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
-    axes[0].plot(q_ref / 1e3, d_ref * 100, "k", lw=2, label=f"full DEM ({full.n_grains} grains)")
-    for p in points:
-        d, q = smoothed(p["history"])
-        axes[0].plot(q / 1e3, d * 100, label=f"coupled, window {p['window_half_width'] * 100:.0f} cm "
-                                              f"({p['grains']} grains)")
-    axes[0].invert_yaxis()
-    axes[0].set_xlabel("q_c, smoothed [kPa]")
-    axes[0].set_ylabel("depth [cm]")
-    axes[0].legend(fontsize=8)
-    axes[1].loglog([p["total_s"] for p in points], [p["q_c_rms_error"] for p in points], "o-", label="coupled")
-    axes[1].axvline(setup_full + run_full, color="k", ls="--", label="full DEM run time")
-    axes[1].set_xlabel("run time [s] (settling + push)")
-    axes[1].set_ylabel("relative RMS error of q_c")
-    axes[1].legend()
+    have_2d = "full_dem" in results
+    fig, axes = plt.subplots(1, 3 if have_2d else 1, figsize=(16 if have_2d else 5.5, 4.5), squeeze=False)
+    axes = axes[0]
+    if have_2d:
+        h_full = results["full_dem"]["history"]
+        d_ref, q_ref = smoothed(h_full)
+        axes[0].plot(q_ref / 1e3, d_ref * 100, "k", lw=2, label=f"full DEM ({results['full_dem']['grains']} grains)")
+        for p in results["coupled"]:
+            d, q = smoothed(p["history"])
+            axes[0].plot(q / 1e3, d * 100, label=f"coupled, window {p['window_half_width'] * 100:.0f} cm "
+                                                  f"({p['grains']} grains)")
+        axes[0].invert_yaxis()
+        axes[0].set_xlabel("q_c, smoothed [kPa]")
+        axes[0].set_ylabel("depth [cm]")
+        axes[0].legend(fontsize=8)
+        axes[0].set_title("2D")
+        pts = results["coupled"]
+        axes[1].loglog([p["total_s"] for p in pts], [p["q_c_rms_error"] for p in pts], "o-", label="coupled")
+        axes[1].axvline(results["full_dem"]["total_s"], color="k", ls="--", label="full DEM run time")
+        axes[1].set_xlabel("run time [s] (settling + push)")
+        axes[1].set_ylabel("relative RMS error of q_c")
+        axes[1].legend()
+        axes[1].set_title("2D")
+    line = results.get("scaling_3d")
+    ax = axes[-1]
+    if line:
+        ranks = np.array([p["ranks"] for p in line["points"]])
+        med = np.array([p["step_s_median"] for p in line["points"]])
+        ax.plot(ranks, med, "o-", label="wall time per FE step (median)")
+        ax.plot(ranks, [p["step_s_min"] for p in line["points"]], "s--", label="min")
+        ax.plot(ranks, [p["dem_s_median"] for p in line["points"]], "^:", label="DEM part (median)")
+        ax.plot(ranks, med[0] / ranks * ranks[0], "k", lw=0.8, label="ideal")
+        ax.set_xticks(ranks)
+        ax.set_xlabel("MPI ranks")
+        ax.set_ylabel("s per FE step")
+        p0 = line["points"][0]
+        ax.set_title(f"3D coupled, {p0['grains']} grains, {p0['dofs']} dofs")
+        ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(args.out / "cpt_vs_full_dem.png", dpi=120)
-    print(f"wrote {args.out / 'results.json'}")
+
+
+if args.scaling_worker is not None:
+    scaling_worker(args.scaling_worker)
+    sys.exit(0)
+
+if comm.rank == 0:
+    args.out.mkdir(parents=True, exist_ok=True)
+results_path = args.out / "results.json"
+results = json.loads(results_path.read_text()) if (args.parts == "scaling" and results_path.exists()) else {}
+if args.parts in ("all", "2d"):
+    results.update(coupled_vs_full())
+if args.parts in ("all", "scaling") and comm.rank == 0:
+    results["scaling_3d"] = {"parameters": scaling, "numba_threads": 1, "points": scaling_line(),
+                             "command": " ".join(sys.argv)}
+if comm.rank == 0:
+    inputs = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    results["inputs"] = inputs | {"short": SHORT, "ranks": comm.size}
+    results_path.write_text(json.dumps(results, indent=2, default=float))
+    plot(results)
+    print(f"wrote {results_path}")

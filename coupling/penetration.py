@@ -601,6 +601,7 @@ class CoupledPenetration:
             # extrapolating the FE acceleration amplifies the grains' noise)
             g_prev, g_next = self.g_prev, self._ghost_motion()
             st.predict()
+            t_dem = time.perf_counter()
             for s in range(1, prm.substeps + 1):
                 frac = s / prm.substeps
                 p.x[self.ghost_local] = self._ghost_positions(g_prev, g_next, frac)
@@ -609,6 +610,7 @@ class CoupledPenetration:
                 p.x[self.pen_index] = self.pen0 + (-self.depth) * down
                 p.v[self.pen_index] = pen_v
                 sim.step(1)
+            t_dem = time.perf_counter() - t_dem
             u = p.x[: self.n_grains, :dim] - self.x_ref[:, :dim]
             if self._q_ref is not None:
                 u = u + self._q_ref[:, :dim]
@@ -637,7 +639,7 @@ class CoupledPenetration:
             self.g_prev = g_next
             f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
             self.history.append(cone_record(prm, f, self.on_cone, self.depth, k + 1, st.t,
-                                            interface_mismatch=mismatch,
+                                            interface_mismatch=mismatch, dem_time=t_dem,
                                             wall_time=time.perf_counter() - t0))
             if progress is not None:
                 progress(self.history[-1])
