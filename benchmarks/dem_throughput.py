@@ -8,6 +8,10 @@ This benchmark shows how to:
 - measure particle-steps per second on 1 and 2 numba threads (3 repeats, min and median;
   loop time only, JIT excluded), contacts per step, JIT compile time cold (fresh
   NUMBA_CACHE_DIR) and warm, and the kinetic energy at step 2000,
+- the same on 1 and 2 MPI ranks (`dem.DistributedSimulation`, one numba thread per rank,
+  launched as ``mpiexec -n P python dem_throughput.py --mpi-worker N REPEATS``; loop time =
+  slowest rank), with the number of decompositions, migrations and halo copies, and the
+  difference of its KE(2000) from the serial run's (0 when the runs agree bit for bit),
 - compare with LIGGGHTS: run here if the ``liggghts`` binary exists, else the peers'
   measured numbers from RESULTS.md (said so in results.json).
 
@@ -53,8 +57,8 @@ def peers_params():
     return mod
 
 
-def settle_sim(P, n):
-    """The settle scene of peers/tools/params.py as a `dem.Simulation`."""
+def settle_scene(P, n):
+    """The settle scene of peers/tools/params.py: particles, material, walls, keywords."""
     import dem
 
     s = P.settle_params()
@@ -65,7 +69,52 @@ def settle_sim(P, n):
              dem.PlaneWall((lx, 0, 0), (-1, 0, 0)), dem.PlaneWall((0, 0, 0), (0, 1, 0)),
              dem.PlaneWall((0, ly, 0), (0, -1, 0))]
     p = dem.Particles.spheres(pos, s["R"], s["RHO"])
-    return dem.Simulation(p, mat, walls, (0, 0, -s["G"]), dt=s["DT"], skin=s["SKIN"])
+    return p, mat, walls, dict(gravity=(0, 0, -s["G"]), dt=s["DT"], skin=s["SKIN"])
+
+
+def settle_sim(P, n):
+    """The settle scene as a `dem.Simulation`."""
+    import dem
+
+    p, mat, walls, kw = settle_scene(P, n)
+    return dem.Simulation(p, mat, walls, **kw)
+
+
+def mpi_worker(n, repeats):
+    """Runs under mpiexec: the settle scene as a `dem.DistributedSimulation`; rank 0
+    prints a JSON line (loop time of the slowest rank)."""
+    from mpi4py import MPI
+
+    import dem
+
+    comm = MPI.COMM_WORLD
+    P = peers_params()
+    loops = []
+    for _ in range(repeats):
+        p, mat, walls, kw = settle_scene(P, n)
+        sim = dem.DistributedSimulation(p if comm.rank == 0 else None, mat, walls, **kw)
+        sim.step(1)  # JIT (cached) and the first decomposition outside the timing
+        comm.Barrier()
+        t = time.perf_counter()
+        sim.step(NSTEPS - 1)
+        loops.append(comm.allreduce(time.perf_counter() - t, op=MPI.MAX) * NSTEPS
+                     / (NSTEPS - 1))
+    ke = sim.energy()["kinetic_translational"]
+    halo = comm.gather(int((~sim.owned).sum()), root=0)
+    if comm.rank == 0:
+        print(json.dumps(dict(loops=loops, ke_2000=ke, decompositions=sim.decompositions,
+                              migrated=sim.migrated, halo_copies=halo)))
+
+
+def run_mpi_worker(n, procs, repeats):
+    env = dict(os.environ, NUMBA_NUM_THREADS="1")
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    mpiexec = str(Path(sys.executable).parent / "mpiexec")
+    out = subprocess.run([mpiexec, "-n", str(procs), sys.executable, __file__, "--mpi-worker",
+                          str(n), str(repeats)], env=env, check=True, capture_output=True,
+                         text=True, cwd=root)
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def worker(n, repeats, count):
@@ -137,15 +186,19 @@ def bar_plot(res, path):
         src = "" if r["liggghts"]["1"]["source"] == "run here" else " (RESULTS.md)"
         bars = [("dem 1 thread", r["dem"]["1"]["mps_median"]),
                 ("dem 2 threads", r["dem"]["2"]["mps_median"]),
+                ("dem MPI 1 rank", r["dem_mpi"]["1"]["mps_median"]),
+                ("dem MPI 2 ranks", r["dem_mpi"]["2"]["mps_median"]),
                 ("LIGGGHTS 1 proc" + src, r["liggghts"]["1"]["mps_median"]),
                 ("LIGGGHTS 2 procs" + src, r["liggghts"]["2"]["mps_median"])]
+        w = 0.8 / len(bars)
         for b, (lab, val) in enumerate(bars):
-            ax.bar(k + (b - 1.5) * w, val, w, color=f"C{b}", label=lab if k == 0 else None)
-            ax.text(k + (b - 1.5) * w, val, f"{val:.1f}", ha="center", va="bottom", fontsize=8)
+            off = (b - (len(bars) - 1) / 2) * w
+            ax.bar(k + off, val, w, color=f"C{b}", label=lab if k == 0 else None)
+            ax.text(k + off, val, f"{val:.1f}", ha="center", va="bottom", fontsize=7)
         labels.append(f"N = {n:,}")
     ax.set_xticks(range(len(labels)), labels)
     ax.set_ylabel("M particle-steps / s (median of 3)")
-    ax.set_title("settle scene, 2000 steps: numba dem vs LIGGGHTS")
+    ax.set_title("settle scene, 2000 steps: numba dem (threads, MPI ranks) vs LIGGGHTS")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -155,9 +208,12 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="output/dem_throughput/")
     ap.add_argument("--worker", nargs=3, type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--mpi-worker", nargs=2, type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         return worker(*args.worker)
+    if args.mpi_worker:
+        return mpi_worker(*args.mpi_worker)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     P = peers_params()
@@ -188,6 +244,20 @@ def main():
                     rn["contacts"] = w["contacts"]
                 print(f"N={n} dem {th} thread(s): {np.median(mps):.2f} M p-steps/s "
                       f"(min {min(mps):.2f}), KE(2000) = {w['ke_2000']:.5e} J")
+            rn["dem_mpi"] = {}
+            for procs in THREADS:
+                w = run_mpi_worker(n, procs, REPEATS)
+                mps = [n * NSTEPS / t / 1e6 for t in w["loops"]]
+                ke_diff = w["ke_2000"] / rn["dem"]["1"]["ke_2000"] - 1
+                rn["dem_mpi"][str(procs)] = dict(
+                    loop_s=w["loops"], mps_min=min(mps), mps_median=float(np.median(mps)),
+                    mps_best=max(mps), ke_2000=w["ke_2000"], ke_2000_rel_diff_serial=ke_diff,
+                    decompositions=w["decompositions"], migrated=w["migrated"],
+                    halo_copies_per_rank=w["halo_copies"])
+                print(f"N={n} dem MPI {procs} rank(s) x 1 thread: {np.median(mps):.2f} M "
+                      f"p-steps/s (min {min(mps):.2f}), KE(2000) - serial: {ke_diff:+.1e}, "
+                      f"{w['decompositions']} decompositions, {w['migrated']} migrations, "
+                      f"halo copies per rank {w['halo_copies']}")
             for procs in THREADS:
                 loop = run_liggghts(P, n, procs, work)
                 if loop is None:
