@@ -60,6 +60,7 @@ import dolfinx_solver  # noqa: F401
 import numpy as np
 
 from coupling.interface import CouplingInterface
+from coupling.penetrators import cone_clump, penetrator_clump, tip_height
 from coupling.regions import Box, CouplingRegions
 from dem import GHOST, ContactMaterial, Particles, Simulation
 from dem.bonded import hexagonal_lattice, hexagonal_lattice_micropolar
@@ -68,7 +69,7 @@ from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 
 __all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record",
-           "CouplingUnstable", "tip_height"]
+           "CouplingUnstable", "cone_clump", "penetrator_clump", "tip_height"]
 
 VERTICAL = {2: 1, 3: 2}   # index of the vertical (penetration) axis
 
@@ -147,69 +148,6 @@ class PenetrationParameters:
             raise ValueError(f"jitter must lie in [0, 0.5), got {self.jitter!r}")
         if self.substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {self.substeps!r}")
-
-
-def tip_height(prm: PenetrationParameters) -> float:
-    """Height of the tip part [m]: the cone's (radius / tan(apex / 2)); 0 for a flat pile."""
-    if prm.shape == "pile":
-        return 0.0
-    return prm.cone_radius / np.tan(np.radians(prm.apex_deg) / 2)
-
-
-def cone_clump(radius_cone, apex_deg, shaft_length, r_grain):
-    """Centres (k, 3) of ghost disks on a cone-and-shaft outline (tip at the origin), the
-    disks' radius, and a mask of the ones on the cone (not the shaft)."""
-    rc = 0.5 * r_grain
-    h_cone = radius_cone / np.tan(np.radians(apex_deg) / 2)
-    pts, on_cone = [], []
-    for side in (-1, 1):
-        s = np.arange(0.0, np.hypot(radius_cone, h_cone), rc)
-        t = s / np.hypot(radius_cone, h_cone)
-        pts.append(np.column_stack([side * t * radius_cone, t * h_cone]))
-        on_cone.append(np.ones(len(s), bool))
-        ys = np.arange(h_cone + rc, h_cone + shaft_length, rc)
-        pts.append(np.column_stack([np.full_like(ys, side * radius_cone), ys]))
-        on_cone.append(np.zeros(len(ys), bool))
-    xy = np.vstack(pts)
-    keep = np.unique(np.round(xy / (1e-6 * rc)), axis=0, return_index=True)[1]
-    xy, cone = xy[np.sort(keep)], np.concatenate(on_cone)[np.sort(keep)]
-    # centres sit inside the outline by rc so that the envelope is the cone surface
-    return np.column_stack([xy, np.zeros(len(xy))]), rc, cone
-
-
-def penetrator_clump(prm: PenetrationParameters, shaft_length: float):
-    """3D: centres (k, 3) of ghost spheres covering the cone's or pile's gmsh surface (tip at
-    the origin, axis z), their radius (half a grain radius), and the mask of the tip part."""
-    from dem.rigid import sample_surface
-    from meshes.penetration import cone_penetrometer, flat_pile
-
-    r_s, R = 0.5 * prm.radius, prm.cone_radius
-    h = max(R / 4, r_s)   # gmsh's triangle size; the clump is sampled at r_s anyway
-    if prm.shape == "cone":
-        pts, tri = cone_penetrometer(3, radius=R, apex_deg=prm.apex_deg, shaft_length=shaft_length, h=h)
-    else:
-        pts, tri = flat_pile(3, radius=R, length=shaft_length, h=h)
-    x = _thinned(sample_surface(pts, tri, r_s), 0.8 * r_s)
-    # the pile's base layer sits r_s above its end; the next shaft ring ~r_s higher
-    tip = x[:, 2] < (tip_height(prm) if prm.shape == "cone" else 1.5 * r_s)
-    return x, r_s, tip
-
-
-def _thinned(x: np.ndarray, spacing: float) -> np.ndarray:
-    """Greedy Poisson-disk thinning: keep a centre unless a kept one lies within ``spacing``.
-    (Sampling each triangle on its own grid puts several centres per r_s^2; every extra
-    sphere of a clump costs ~10 clump-internal pairs per DEM step.)"""
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(x).query_pairs(spacing, output_type="ndarray")
-    pairs = np.sort(pairs, axis=1)
-    pairs = pairs[np.lexsort((pairs[:, 0], pairs[:, 1]))]
-    starts = np.searchsorted(pairs[:, 1], np.arange(len(x) + 1))
-    keep = np.ones(len(x), bool)
-    for i in range(len(x)):
-        if keep[pairs[starts[i]:starts[i + 1], 0]].any():
-            keep[i] = False
-    return x[keep]
 
 
 def cone_record(prm, force_on_cone, on_cone, depth, step, t, **extra) -> dict:
@@ -449,6 +387,8 @@ class CoupledPenetration:
             log(f"settled {n} grains in {time.perf_counter() - t0:.1f} s "
                 f"({self.sim.nsteps} steps of {self.sim.dt:.3g} s), kinetic energy "
                 f"{e['kinetic_translational']:.3g} J")
+            if dim == 3:
+                self._lower_penetrator(r_pen)
             self.x_ref = self.sim.p.x[:n].copy()
             self.material_fe, self.contact_stats = self._continuum_material()
             # the continuum reaches the highest settled grain centre (every grain inside the mesh)
@@ -492,6 +432,19 @@ class CoupledPenetration:
             self._restore_run(saved)
 
     # ---- set-up -------------------------------------------------------------------------
+    def _lower_penetrator(self, r_pen: float) -> None:
+        """3D: a packing settles by several grain radii; start the tip 0.1 grain radius above
+        the settled grains near the axis instead of above the lattice (no push through air)."""
+        p, n, prm = self.sim.p, self.n_grains, self.prm
+        near = np.hypot(p.x[:n, 0], p.x[:n, 1]) < prm.cone_radius + 2 * prm.radius
+        if not near.any():
+            return
+        top = float((p.x[:n, 2][near] + p.radius[:n][near]).max())
+        shift = top + 0.1 * prm.radius - float((self.pen0[:, 2] - r_pen).min())
+        if shift < 0:
+            self.pen0[:, 2] += shift
+            p.x[self.pen_index] = self.pen0
+
     def _continuum_material(self):
         """Micropolar constants and density of the settled packing (module docstring, 3.)."""
         if self.prm.dim == 3:
@@ -661,7 +614,7 @@ class CoupledPenetration:
                  w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
                  a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem._last_good)
         if comm.rank == 0:
-            np.savez(directory / "grains.npz", **dem_state(self.sim), x_ref=self.x_ref,
+            np.savez(directory / "grains.npz", **dem_state(self.sim), x_ref=self.x_ref, pen0=self.pen0,
                      g_prev_u=self.g_prev[0], g_prev_theta=self.g_prev[1])
         comm.barrier()
         if comm.rank == 0:
@@ -683,7 +636,7 @@ class CoupledPenetration:
                                     f"rank(s); restart with mpiexec -n {state['ranks']}")
         grains = dict(np.load(directory / "grains.npz"))
         restore_dem_state(self.sim, grains)
-        self.x_ref = grains["x_ref"]
+        self.x_ref, self.pen0 = grains["x_ref"], grains["pen0"]
         self.material_fe = MicropolarMaterial(**state["material"])
         self.contact_stats = state["packing"]
         self.surface = state["surface"]

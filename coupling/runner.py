@@ -83,7 +83,7 @@ def _summarise_penetration(scene) -> dict:
     else:  # ~6 tetrahedra per h^3 cube, ~1/5 node per tetrahedron
         window = np.pi * 2 * (prm.window_half_width + band) ** 2 * (prm.window_depth + band)
         chamber = np.pi * prm.chamber_width**2 / 4 * prm.chamber_depth
-        nodes = (6 * 8 * window / hw**3 + 6 * chamber / hf**3) / 5
+        nodes = (6 * window / hw**3 + 6 * chamber / hf**3) / 5
     dofs = (3 if dim == 2 else 6) * nodes
     return {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
             "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
