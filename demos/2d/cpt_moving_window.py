@@ -50,7 +50,9 @@ else:
                                 window_depth=0.05, element_size_window=0.006,
                                 element_size_far=0.015, radius=1.5e-3, cone_radius=0.008,
                                 depth=0.02, settle_time=0.2, substeps=40)
-    moving = MovingWindowParameters(depth=0.1, trigger=3, step=6, max_height=0.09,
+    # at depth 0.1 this run diverged at 69 mm (ghost displacement beyond twice the cone's
+    # travel, after two moves): see the report of issue 5; 65 mm is the tested default
+    moving = MovingWindowParameters(depth=0.065, trigger=3, step=6, max_height=0.09,
                                     settle_steps=1500)
 # the fixed-window run to this depth is refused
 try:
