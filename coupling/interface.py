@@ -13,7 +13,7 @@ import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
-from coupling.locate import owner_ranks
+from coupling.locate import owner_ranks, relocate
 from coupling.operators import FieldBasis, NodalProjection
 from coupling.regions import CouplingRegions
 
@@ -59,19 +59,12 @@ class CouplingInterface:
             raise ValueError("kinds must be 0 (free) or 1 (ghost); drop particles outside the "
                              "coupled region before coupling")
         t0 = time.perf_counter()
-        owners = owner_ranks(domain, self.x[:, :gdim])
-        mine = owners == comm.rank
-        self.ghost_index = np.flatnonzero(self.kinds == 1)
-        self.free_index = np.flatnonzero(self.kinds == 0)
-        self._ghost_mine = np.flatnonzero(mine[self.ghost_index])  # positions within ghost list
-        self._free_mine = self.free_index[mine[self.free_index]]    # particle indices
-        ghost_pts = self.x[self.ghost_index[self._ghost_mine], :gdim]
-        free_pts = self.x[self._free_mine, :gdim]
+        self._locate(self.x)
         self.g = fem.Function(V, name="prescribed_values")
         bc_dofs, self.fields = [], []
         for sub in (0, 1):
-            ghost = FieldBasis.build(V, ghost_pts, sub=sub)
-            free = FieldBasis.build(V, free_pts, sub=sub)
+            ghost = FieldBasis.build(V, self._ghost_points(self.x), sub=sub)
+            free = FieldBasis.build(V, self._free_points(self.x), sub=sub)
             Vc, parent = V.sub(sub).collapse()
             parent = np.asarray(parent[0] if isinstance(parent, list) else parent, dtype=np.int64)
             bs = Vc.dofmap.bs
@@ -83,6 +76,9 @@ class CouplingInterface:
             projection = NodalProjection(free, owned, regularization)
             self.fields.append(_Field(sub, ghost, free, projection, np.sort(owned)))
             bc_dofs.append(local)
+        self.regularization = regularization
+        self.update_counts = {"updates": 0, "changed_cell": 0, "changed_rank": 0,
+                              "pattern_rebuilds": 0, "full_rebuilds": 0}
         self.n_prescribed = comm.allreduce(sum(f.prescribed.size for f in self.fields))
         if self.n_prescribed == 0:
             raise ValueError("no FE dofs are prescribed: the window is smaller than the "
@@ -95,6 +91,75 @@ class CouplingInterface:
         problem.petsc_options.setdefault("snes_lag_jacobian_persists", True)
         problem._snes = None
         self.setup_time = time.perf_counter() - t0
+
+    def _locate(self, x: np.ndarray) -> None:
+        """Which particles this rank holds (the owner of the cell containing each centroid)."""
+        owners = owner_ranks(self.problem.domain, x[:, : self.gdim])
+        mine = owners == self.comm.rank
+        self._owners = owners
+        self.ghost_index = np.flatnonzero(self.kinds == 1)
+        self.free_index = np.flatnonzero(self.kinds == 0)
+        self._ghost_mine = np.flatnonzero(mine[self.ghost_index])  # positions within ghost list
+        self._free_mine = self.free_index[mine[self.free_index]]    # particle indices
+
+    def _ghost_points(self, x: np.ndarray) -> np.ndarray:
+        return x[self.ghost_index[self._ghost_mine], : self.gdim]
+
+    def _free_points(self, x: np.ndarray) -> np.ndarray:
+        return x[self._free_mine, : self.gdim]
+
+    def update_positions(self, x: np.ndarray) -> dict:
+        """Move the coupled particles (same particles and kinds) to centroids x (n, 3).
+
+        Cheapest path first: each rank checks whether its particles are still inside their
+        cells (a pull-back to the reference cell) and searches only for those that left;
+        every row of N is re-evaluated (values change inside a cell too), and the sparsity
+        of N and M plus the symbolic factorisation of M are rebuilt only if some particle
+        changed cell. If a particle left its rank's cells, ownership is recomputed and the
+        operators are built anew (the prescribed dofs and the Dirichlet condition are kept).
+        Collective; the result equals a fresh :class:`CouplingInterface` at x to round-off.
+
+        Returns:
+            this call's counts: changed_cell (particles that changed cell, all ranks),
+            changed_rank, pattern_rebuilt (bool), full_rebuild (bool). Running totals are
+            kept in :attr:`update_counts`.
+        """
+        x = np.asarray(x, dtype=float)
+        if x.shape != self.x.shape:
+            raise ValueError(f"x must have shape {self.x.shape} (the same particles), "
+                             f"got {x.shape}")
+        domain = self.problem.domain
+        located = []
+        n_lost = 0
+        for pts, basis in ((self._ghost_points(x), self.fields[0].ghost),
+                           (self._free_points(x), self.fields[0].free)):
+            cells, X, changed, lost = relocate(domain, pts, basis.cells)
+            located.append((cells, X, changed))
+            n_lost += int(lost.sum())
+        counts = {"changed_cell": 0, "changed_rank": 0, "pattern_rebuilt": False,
+                  "full_rebuild": False}
+        if self.comm.allreduce(n_lost):
+            old = self._owners
+            self._locate(x)
+            counts["changed_rank"] = int(np.count_nonzero(old != self._owners))
+            counts["full_rebuild"] = counts["pattern_rebuilt"] = True
+            for f in self.fields:
+                f.ghost = FieldBasis.build(self.problem.V, self._ghost_points(x), sub=f.sub)
+                f.free = FieldBasis.build(self.problem.V, self._free_points(x), sub=f.sub)
+                f.projection = NodalProjection(f.free, f.prescribed, self.regularization)
+        else:
+            for f in self.fields:
+                n_ghost = f.ghost.update(self._ghost_points(x), located[0])
+                n_free = f.free.update(self._free_points(x), located[1])
+                counts["pattern_rebuilt"] |= f.projection.update()
+            counts["changed_cell"] = n_ghost + n_free
+        self.x = x.copy()
+        self.update_counts["updates"] += 1
+        for key in ("changed_cell", "changed_rank"):
+            self.update_counts[key] += counts[key]
+        self.update_counts["pattern_rebuilds"] += int(counts["pattern_rebuilt"])
+        self.update_counts["full_rebuilds"] += int(counts["full_rebuild"])
+        return counts
 
     def _supported(self, V, basis, candidates, fraction):
         """The candidate dofs (local, owned and ghost) whose diagonal of M is large enough."""

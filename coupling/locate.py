@@ -3,7 +3,8 @@
 A particle belongs to the rank that owns the cell containing its centroid (DESIGN.md,
 "Parallel"). :func:`owner_ranks` tells every rank where each of its points must live;
 :func:`locate_owned` finds, for points already on their owning rank, the owned cell and
-the reference coordinates needed to evaluate FE basis functions there.
+the reference coordinates needed to evaluate FE basis functions there; :func:`relocate`
+updates that for moved points, searching again only for those that left their cell.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import numpy as np
 
 import dolfinx.geometry
 
-__all__ = ["PointsOutsideMesh", "locate_owned", "owner_ranks", "pad_points"]
+__all__ = ["PointsOutsideMesh", "inside_reference", "locate_owned", "owner_ranks", "pad_points",
+           "reference_coordinates", "relocate"]
 
 
 class PointsOutsideMesh(ValueError):
@@ -108,13 +110,81 @@ def locate_owned(
     return cells, reference_coordinates(mesh, x, cells)
 
 
+_SIMPLICES = ("interval", "triangle", "tetrahedron")
+
+
 def reference_coordinates(mesh: dolfinx.mesh.Mesh, x: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Pull points x (n, 3) back to the reference cell of their cells (n,) -> (n, tdim)."""
+    """Pull points x (n, 3) back to the reference cell of their cells (n,) -> (n, tdim).
+
+    Affine simplices (P1 geometry) in one vectorised solve ``X = J^-1 (x - x_0)``; other
+    cells point by point through the coordinate element (Newton for non-affine maps).
+    """
     tdim, gdim = mesh.topology.dim, mesh.geometry.dim
     cmap = mesh.geometry.cmaps[0]
     dofmap = mesh.geometry.dofmaps[0]
     X = np.empty((x.shape[0], tdim), dtype=np.float64)
+    if x.shape[0] == 0:
+        return X
+    if cmap.degree == 1 and mesh.topology.cell_type.name in _SIMPLICES and tdim == gdim:
+        v = mesh.geometry.x[dofmap[cells], :gdim]  # (n, tdim + 1, gdim), reference vertex order
+        J = np.transpose(v[:, 1:, :] - v[:, :1, :], (0, 2, 1))  # (n, gdim, tdim)
+        return np.linalg.solve(J, (x[:, :gdim] - v[:, 0, :])[:, :, None])[:, :, 0]
     for i, c in enumerate(cells):
         coords = mesh.geometry.x[dofmap[c], :gdim]
         X[i] = cmap.pull_back(x[i : i + 1, :gdim], coords)[0]
     return X
+
+
+def inside_reference(cell_type: str, X: np.ndarray, tol: float = 1e-12) -> np.ndarray:
+    """(n,) bool: reference points X (n, tdim) inside the reference cell (closed, within tol)."""
+    if cell_type in _SIMPLICES:
+        return np.all(X >= -tol, axis=1) & (X.sum(axis=1) <= 1.0 + tol)
+    if cell_type in ("quadrilateral", "hexahedron"):
+        return np.all((X >= -tol) & (X <= 1.0 + tol), axis=1)
+    raise NotImplementedError(f"inside_reference: cell type {cell_type!r}")
+
+
+def relocate(
+    mesh: dolfinx.mesh.Mesh, points: np.ndarray, cells: np.ndarray, padding: float = 1e-10
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cells and reference coordinates of moved points, searching only for those that left.
+
+    A point whose reference coordinates in its old cell still lie in the reference cell keeps
+    that cell (cheap: one pull-back per point); the others go through the bounding-box
+    search among this rank's owned cells. Local, not collective.
+
+    Args:
+        mesh: the FE mesh.
+        points: (n, gdim) new centroids [m], same points and order as ``cells``.
+        cells: (n,) their previous owned local cells.
+
+    Returns:
+        cells (n,) int32, X (n, tdim), changed (n,) bool (cell differs from before) and
+        lost (n,) bool (no owned cell contains the point: it left this rank or the mesh; its
+        cell and X are meaningless).
+    """
+    x = pad_points(points)
+    cells = np.array(cells, dtype=np.int32)
+    if cells.shape != (x.shape[0],):
+        raise ValueError(f"cells must have shape ({x.shape[0]},), got {cells.shape}")
+    X = reference_coordinates(mesh, x, cells)
+    left = np.flatnonzero(~inside_reference(mesh.topology.cell_type.name, X, tol=1e-12))
+    changed = np.zeros(x.shape[0], dtype=bool)
+    lost = np.zeros(x.shape[0], dtype=bool)
+    if left.size:
+        tdim = mesh.topology.dim
+        n_owned = mesh.topology.index_map(tdim).size_local
+        tree = dolfinx.geometry.bb_tree(mesh, tdim, padding=padding)
+        candidates = dolfinx.geometry.compute_collisions_points(tree, x[left])
+        colliding = dolfinx.geometry.compute_colliding_cells(mesh, candidates, x[left])
+        for k, i in enumerate(left):
+            links = colliding.links(k)
+            links = links[links < n_owned]
+            if links.size:
+                changed[i] = links.min() != cells[i]
+                cells[i] = links.min()
+            else:
+                lost[i] = True
+        found = left[~lost[left]]
+        X[found] = reference_coordinates(mesh, x[found], cells[found])
+    return cells, X, changed, lost

@@ -9,13 +9,17 @@ column per dof of the *parent* space (its global numbering), so it acts directly
 ``NodalProjection`` is the discrete L2 projection of particle motion onto the prescribed
 nodes of the overlap, seed 001 eq. 79-90: ``D^ = M^-1 N^^T (Q - N_D D)`` with
 ``M = N^^T N^`` where ``N^`` holds the columns of the prescribed dofs.
+
+When particles move, ``FieldBasis.update`` and ``NodalProjection.update`` re-locate only the
+particles that left their cell and refill N (and M's values, refactorised numerically) in
+place; sparsity and symbolic factorisation are rebuilt only if some particle changed cell.
 """
 
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -24,13 +28,60 @@ from petsc4py import PETSc
 import dolfinx.fem
 import dolfinx.la
 
-from coupling.locate import locate_owned, pad_points
+from coupling.locate import PointsOutsideMesh, locate_owned, pad_points, relocate
 
 __all__ = ["FieldBasis", "NodalProjection", "SingularProjection"]
 
 
 class SingularProjection(ValueError):
     """The projection matrix M is singular: named dofs have too few particles in their support."""
+
+
+class _FieldLayout:
+    """What a basis needs of one field of V: collapsed space, parent dofs, scalar element and
+    the global column of every local parent dof."""
+
+    def __init__(self, V: dolfinx.fem.FunctionSpace, sub: int | None):
+        Vs = V if sub is None else V.sub(sub)
+        self.Vc, parent = Vs.collapse()
+        self.parent = np.asarray(parent[0] if isinstance(parent, list) else parent, dtype=np.int64)
+        if self.Vc.element.needs_dof_transformations:
+            raise NotImplementedError(
+                "FieldBasis supports elements without dof transformations (Lagrange up to P2)"
+            )
+        ufl_el = self.Vc.ufl_element()
+        self.scalar = (ufl_el.sub_elements[0] if ufl_el.block_size > 1 else ufl_el).basix_element
+        self.bs = self.Vc.dofmap.bs
+        imap, bsV = V.dofmap.index_map, V.dofmap.bs
+        self.n_parent_local = (imap.size_local + imap.num_ghosts) * bsV
+        blocks = np.arange(self.n_parent_local) // bsV
+        self.global_cols = imap.local_to_global(blocks.astype(np.int32)) * bsV + np.arange(
+            self.n_parent_local
+        ) % bsV
+
+    def rows(self, cells: np.ndarray, X: np.ndarray) -> sp.csr_matrix:
+        """Owned rows ``p * bs + k`` over the local parent dofs for points in cells at X."""
+        bs, n = self.bs, len(cells)
+        if n == 0:
+            return sp.csr_matrix((0, self.n_parent_local))
+        phi = self.scalar.tabulate(0, X)[0, :, :, 0]  # (n, ndofs)
+        cdofs = self.Vc.dofmap.list[cells]  # (n, ndofs)
+        nd = cdofs.shape[1]
+        rows = np.repeat(np.arange(n * bs), nd)
+        cols = self.parent[(cdofs[:, None, :] * bs + np.arange(bs)[None, :, None])].ravel()
+        vals = np.repeat(phi[:, None, :], bs, axis=1).ravel()
+        local = sp.csr_matrix((vals, (rows, cols)), shape=(n * bs, self.n_parent_local))
+        local.sum_duplicates()
+        local.sort_indices()
+        return local
+
+    def csr(self, local: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indptr, global columns, values) of the owned rows, as PETSc takes them."""
+        return (
+            local.indptr.astype(PETSc.IntType),
+            self.global_cols[local.indices].astype(PETSc.IntType),
+            local.data,
+        )
 
 
 @dataclass
@@ -46,6 +97,8 @@ class FieldBasis:
         dofs: local parent dof indices this field uses (owned and ghost), sorted.
         dof_coordinates: (len(dofs), 3) coordinates of those dofs [m].
         particle_offset: global index of this rank's first particle.
+        cells: (n,) owned local cell of each particle (kept for :meth:`update`).
+        pattern_version: increases whenever :attr:`matrix` is rebuilt with a new sparsity.
     """
 
     V: dolfinx.fem.FunctionSpace
@@ -56,6 +109,9 @@ class FieldBasis:
     dofs: np.ndarray
     dof_coordinates: np.ndarray
     particle_offset: int
+    cells: np.ndarray | None = None
+    pattern_version: int = 0
+    _layout: _FieldLayout | None = field(default=None, repr=False)
 
     @classmethod
     def build(
@@ -70,65 +126,71 @@ class FieldBasis:
         comm = mesh.comm
         x = pad_points(points)
         cells, X = locate_owned(mesh, x)
-        Vs = V if sub is None else V.sub(sub)
-        Vc, parent = Vs.collapse()
-        parent = np.asarray(parent[0] if isinstance(parent, list) else parent, dtype=np.int64)
-        if Vc.element.needs_dof_transformations:
-            raise NotImplementedError(
-                "FieldBasis supports elements without dof transformations (Lagrange up to P2)"
-            )
-        ufl_el = Vc.ufl_element()
-        scalar = ufl_el.sub_elements[0] if ufl_el.block_size > 1 else ufl_el
-        bs = Vc.dofmap.bs
-        phi = scalar.basix_element.tabulate(0, X)[0, :, :, 0] if len(X) else np.zeros((0, 0))
-
+        f = _FieldLayout(V, sub)
         n_local = x.shape[0]
         offset = comm.exscan(n_local) or 0
-        n_global = comm.allreduce(n_local)
+        local = f.rows(cells, X)
+        A = cls._matrix(V, f, local)
+
+        dofs = np.unique(f.parent)
+        coords_c = f.Vc.tabulate_dof_coordinates()
+        dof_coordinates = np.empty((dofs.size, 3))
+        dof_coordinates[np.searchsorted(dofs, f.parent)] = np.repeat(coords_c, f.bs, axis=0)[
+            : f.parent.size
+        ]
+        return cls(V, sub, f.bs, A, local, dofs, dof_coordinates, offset, cells, 0, f)
+
+    @staticmethod
+    def _matrix(V, f: _FieldLayout, local: sp.csr_matrix) -> PETSc.Mat:
+        comm = V.mesh.comm
+        n_rows = local.shape[0]
         imap, bsV = V.dofmap.index_map, V.dofmap.bs
-        n_parent_local = (imap.size_local + imap.num_ghosts) * bsV
-
-        rows, cols, vals = [], [], []
-        for i, c in enumerate(cells):
-            cdofs = Vc.dofmap.cell_dofs(c)
-            for k in range(bs):
-                rows.append(np.full(cdofs.size, i * bs + k))
-                cols.append(parent[cdofs * bs + k])
-                vals.append(phi[i])
-        if rows:
-            rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
-        else:
-            rows, cols, vals = (np.zeros(0, dtype=t) for t in (np.int64, np.int64, float))
-        local = sp.csr_matrix((vals, (rows, cols)), shape=(n_local * bs, n_parent_local))
-        local.sum_duplicates()
-
-        blocks = np.arange(n_parent_local) // bsV
-        global_cols = imap.local_to_global(blocks.astype(np.int32)) * bsV + np.arange(
-            n_parent_local
-        ) % bsV
         n_dofs_owned, n_dofs_global = imap.size_local * bsV, imap.size_global * bsV
+        # exact preallocation from the rows themselves (PETSc numbers them from this rank's
+        # first row): a changed sparsity is a new matrix, an unchanged one is refilled in place
         A = PETSc.Mat().createAIJ(
-            ((n_local * bs, n_global * bs), (n_dofs_owned, n_dofs_global)),
-            nnz=(scalar.basix_element.dim, scalar.basix_element.dim),
+            ((n_rows, comm.allreduce(n_rows)), (n_dofs_owned, n_dofs_global)),
+            csr=f.csr(local),
             comm=comm,
         )
-        A.setUp()
-        for r in range(local.shape[0]):
-            lo, hi = local.indptr[r], local.indptr[r + 1]
-            A.setValues(
-                offset * bs + r,
-                global_cols[local.indices[lo:hi]].astype(PETSc.IntType),
-                local.data[lo:hi],
-            )
         A.assemble()
+        return A
 
-        dofs = np.unique(parent)
-        coords_c = Vc.tabulate_dof_coordinates()
-        dof_coordinates = np.empty((dofs.size, 3))
-        dof_coordinates[np.searchsorted(dofs, parent)] = np.repeat(coords_c, bs, axis=0)[
-            : parent.size
-        ]
-        return cls(V, sub, bs, A, local.tocsr(), dofs, dof_coordinates, offset)
+    def update(self, points: np.ndarray, located=None) -> int:
+        """Move this rank's particles to ``points`` (n, gdim), same particles and order.
+
+        Re-locates only the particles that left their cell (:func:`coupling.locate.relocate`),
+        re-evaluates every row, and keeps the matrix (same sparsity, values overwritten) unless
+        some particle on some rank changed cell, when it is rebuilt. ``located`` = (cells, X,
+        changed) from a shared :func:`relocate` call saves the search for a second field.
+        Collective. Returns the number of particles (all ranks) that changed cell; raises
+        :class:`coupling.locate.PointsOutsideMesh` on every rank if some left their rank's cells.
+        """
+        comm = self.V.mesh.comm
+        x = pad_points(points)
+        if x.shape[0] != len(self.cells):
+            raise ValueError(f"update needs the same {len(self.cells)} particles, got {x.shape[0]}")
+        if located is None:
+            cells, X, changed, lost = relocate(self.V.mesh, x, self.cells)
+            n_lost = comm.allreduce(int(lost.sum()))
+            if n_lost:
+                raise PointsOutsideMesh(
+                    f"{n_lost} particle(s) left the cells of their rank: redistribute and "
+                    "build anew"
+                )
+        else:
+            cells, X, changed = located
+        n_changed = comm.allreduce(int(np.count_nonzero(changed)))
+        local = self._layout.rows(cells, X)
+        if n_changed == 0:
+            self.matrix.setValuesCSR(*self._layout.csr(local))
+            self.matrix.assemble()
+        else:
+            self.matrix.destroy()
+            self.matrix = self._matrix(self.V, self._layout, local)
+            self.pattern_version += 1
+        self.local, self.cells = local, np.asarray(cells, dtype=np.int32)
+        return n_changed
 
     def interpolate(self, u: dolfinx.fem.Function) -> np.ndarray:
         """Field values at this rank's particles, (n, value_size): ``Q = N D`` (eq. 74)."""
@@ -148,7 +210,9 @@ class NodalProjection:
 
     ``D^ = argmin |N^ D^ - (Q - N_D D)|^2``, i.e. ``M D^ = N^^T (Q - N_D D)`` with
     ``M = N^^T N^``. ``prescribed`` are local, *owned* parent dof indices of the field.
-    M is factorised once (MUMPS) and reused until particles change cells.
+    M is factorised once (MUMPS); after particles move (:meth:`update`) only its values are
+    refactorised, and its sparsity and symbolic factorisation are rebuilt only when some
+    particle changed cell.
 
     Args:
         basis: the field's :class:`FieldBasis`.
@@ -176,16 +240,38 @@ class NodalProjection:
         self._mask = mask.array > 0.5
         glob = basis.global_dofs(prescribed).astype(PETSc.IntType)
         self._cols = PETSc.IS().createGeneral(glob, comm=comm)
+        self.regularization = regularization
+        self.rebuilds = 0  # new sparsity: submatrix, product and symbolic factorisation anew
+        self.value_updates = 0  # same sparsity: values recomputed, numeric refactorisation only
+        self.N_hat = self.M = self.ksp = None
+        self._assemble()
+
+    def _assemble(self) -> None:
+        """(Re)build N^ and M = N^^T N^ from the basis matrix; reuse their sparsity and the
+        symbolic factorisation while the basis keeps its pattern. Collective."""
+        basis, comm = self.basis, self.basis.V.mesh.comm
+        reuse = self.M is not None and self._pattern == basis.pattern_version
         rlo, rhi = basis.matrix.getOwnershipRange()
         rows = PETSc.IS().createStride(rhi - rlo, first=rlo, step=1, comm=comm)
-        self.N_hat = basis.matrix.createSubMatrix(rows, self._cols)
-        self.M = self.N_hat.transposeMatMult(self.N_hat)
+        if reuse:
+            basis.matrix.createSubMatrix(rows, self._cols, submat=self.N_hat)
+            self.N_hat.transposeMatMult(self.N_hat, result=self.M)
+            self.value_updates += 1
+        else:
+            for obj in (self.N_hat, self.M, self.ksp):
+                if obj is not None:
+                    obj.destroy()
+            self.N_hat = basis.matrix.createSubMatrix(rows, self._cols)
+            self.M = self.N_hat.transposeMatMult(self.N_hat)
+            self.rebuilds += 1
+        self._pattern = basis.pattern_version
         diag = self.M.getDiagonal()
         d = diag.getArray().copy()
         scale = comm.allreduce(d.sum()) / max(comm.allreduce(d.size), 1)
         empty = np.flatnonzero(d <= 1e-14 * max(scale, 1e-300))
-        if regularization > 0.0:
-            diag.set(regularization * scale)
+        prescribed = self.prescribed
+        if self.regularization > 0.0:
+            diag.set(self.regularization * scale)
             self.M.setDiagonal(diag, addv=PETSc.InsertMode.ADD_VALUES)
         elif comm.allreduce(empty.size):
             where = [
@@ -198,6 +284,9 @@ class NodalProjection:
                 f"{prescribed[empty[:5]].tolist()} at {where}. Shrink the prescribed region, "
                 f"add particles, or pass regularization > 0."
             )
+        if reuse:
+            self.ksp.setOperators(self.M)  # same pattern: numeric refactorisation at next solve
+            return
         self.ksp = PETSc.KSP().create(comm)
         self.ksp.setOperators(self.M)
         self.ksp.setType("preonly")
@@ -207,6 +296,14 @@ class NodalProjection:
         self.ksp.setErrorIfNotConverged(True)
         self._rhs, self._sol = self.M.createVecs()
         self._q = basis.matrix.createVecLeft()
+
+    def update(self) -> bool:
+        """Follow :meth:`FieldBasis.update` of the basis: values only (numeric refactorisation)
+        when its sparsity is unchanged, else submatrix, M and factorisation anew. Collective.
+        Returns True if the sparsity was rebuilt."""
+        rebuilt = self._pattern != self.basis.pattern_version
+        self._assemble()
+        return rebuilt
 
     def project(self, q: np.ndarray, u: dolfinx.fem.Function) -> np.ndarray:
         """Prescribed-dof values D^ (len(prescribed),) from particle values q (n, value_size).

@@ -157,3 +157,121 @@ def test_parallel_equals_serial():
     q_ser, v_ser = run(MPI.COMM_SELF)
     assert np.allclose(q_par, q_ser, rtol=0, atol=1e-13)
     assert np.allclose(v_par, v_ser, rtol=0, atol=1e-11)
+
+
+def toward_centroid(V, basis, pts, fraction=0.3):
+    """Points moved part of the way to their cell's centroid: same cell, new basis values."""
+    geo = V.mesh.geometry
+    centroid = geo.x[geo.dofmaps[0][basis.cells]].mean(axis=1)[:, :2]
+    return pts + fraction * (centroid - pts)
+
+
+def moved_on_same_rank(V, pts_all, shift):
+    """Shifted points that stay inside the square and on the rank that held them."""
+    moved = np.clip(pts_all + shift, 1e-3, 1 - 1e-3)
+    keep = owner_ranks(V.mesh, pts_all) == owner_ranks(V.mesh, moved)  # same on every rank
+    return pts_all[keep], moved[keep]
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("sub", [0, 1])
+def test_update_equals_fresh_build(sub):
+    """Moving particles inside their cells refactorises M's values only; moving them across
+    cells rebuilds the sparsity; both give the fresh build's N and D^ to round-off."""
+    V = mixed_space(MPI.COMM_WORLD)
+    comm = V.mesh.comm
+    w = smooth_state(V)
+    rng = np.random.default_rng(11)
+    before, after = moved_on_same_rank(V, all_points(600, seed=5),
+                                       0.04 * rng.standard_normal((600, 2)))
+    pts, ids = my_points(V, before)
+    basis = FieldBasis.build(V, pts, sub=sub)
+    prescribed = prescribed_dofs(basis, 0.5)
+    proj = NodalProjection(basis, prescribed)
+    q_values = np.sin(7 * pts).reshape(-1)[: len(pts) * basis.value_size].reshape(len(pts), -1)
+
+    def agrees_with_fresh(new_pts):
+        fresh = FieldBasis.build(V, new_pts, sub=sub)
+        fresh_proj = NodalProjection(fresh, prescribed)
+        err_n = np.abs(basis.interpolate(w) - fresh.interpolate(w)).max(initial=0.0)
+        y, y0 = basis.matrix.createVecLeft(), fresh.matrix.createVecLeft()
+        basis.matrix.mult(w.x.petsc_vec, y)
+        fresh.matrix.mult(w.x.petsc_vec, y0)
+        err_petsc = np.abs(y.getArray() - y0.getArray()).max(initial=0.0)
+        d, d0 = proj.project(q_values, w), fresh_proj.project(q_values, w)
+        scale = comm.allreduce(np.abs(d0).max(initial=0.0), op=MPI.MAX)
+        err_d = np.abs(d - d0).max(initial=0.0) / scale
+        return comm.allreduce(max(err_n, err_petsc, err_d), op=MPI.MAX)
+
+    inside = toward_centroid(V, basis, pts)
+    assert basis.update(inside) == 0
+    assert proj.update() is False and proj.value_updates == 1 and proj.rebuilds == 1
+    assert agrees_with_fresh(inside) < 1e-12
+
+    moved = after[ids]
+    assert basis.update(moved) > 0
+    assert proj.update() is True and proj.rebuilds == 2
+    assert agrees_with_fresh(moved) < 1e-12
+
+
+def test_update_refuses_particles_that_left():
+    V = mixed_space(MPI.COMM_WORLD)
+    pts, _ = my_points(V, all_points(50))
+    basis = FieldBasis.build(V, pts, sub=1)
+    with pytest.raises(ValueError, match=f"the same {len(pts)} particles, got 3"):
+        basis.update(pts[:3])
+    away = pts.copy()
+    away[:1] += 2.0
+    with pytest.raises(PointsOutsideMesh, match="left the cells of their rank"):
+        basis.update(away)
+
+
+@pytest.mark.mpi
+def test_interface_update_positions_equals_fresh_interface():
+    """CouplingInterface.update_positions: in-cell moves, cell changes and (under MPI) rank
+    changes all give the ghost motion and projected dofs of a fresh interface."""
+    from coupling.interface import CouplingInterface
+    from coupling.regions import Box, CouplingRegions
+    from dem.bonded import hexagonal_lattice
+    from granfe.materials import MicropolarMaterial
+    from granfe.problem import MicropolarProblem
+
+    comm = MPI.COMM_WORLD
+    domain = mesh.create_unit_square(comm, 8, 8)
+    material = MicropolarMaterial(lam=1e6, mu=1e6, kappa=1e5, gamma=1e2)
+    regions = CouplingRegions(Box((0.3, 0.3), (0.7, 0.7)), ghost_width=0.06, handshake=0.1)
+    x = hexagonal_lattice((0.2, 0.2), (0.8, 0.8), 0.0125) + np.array([1.3e-3, 0.7e-3, 0.0])
+    kinds = regions.particle_kinds(x)
+    x, kinds = x[kinds >= 0], kinds[kinds >= 0]
+    rng = np.random.default_rng(2)
+    u, theta = rng.standard_normal((len(x), 3)) * 1e-3, rng.standard_normal(len(x)) * 1e-3
+
+    def problem(tag):
+        p = MicropolarProblem(domain, material, degree=(2, 1), prefix=f"upd_{tag}_")
+        p.w.sub(0).interpolate(lambda y: np.vstack([np.sin(3 * y[0]) * y[1], y[0] ** 2]))
+        p.w.sub(1).interpolate(lambda y: np.exp(y[0] - y[1]))
+        p.w.x.scatter_forward()
+        return p
+
+    def outputs(iface):
+        ug, tg = iface.ghost_motion()
+        return ug, tg, iface.project(u, theta)
+
+    iface = CouplingInterface(problem("moving"), x, kinds, regions)
+    moves = [("inside cells", x + 1e-7 * rng.standard_normal(x.shape) * [1, 1, 0]),
+             ("across cells", x + 0.02 * rng.standard_normal(x.shape) * [1, 1, 0]),
+             ("shifted", x + np.array([0.12, -0.05, 0.0]))]
+    for k, (name, xk) in enumerate(moves):
+        counts = iface.update_positions(xk)
+        fresh = CouplingInterface(problem(f"fresh{k}"), xk, kinds, regions)
+        for a, b in zip(outputs(iface), outputs(fresh), strict=True):
+            err = comm.allreduce(np.abs(a - b).max(initial=0.0), op=MPI.MAX)
+            scale = comm.allreduce(np.abs(b).max(initial=0.0), op=MPI.MAX)
+            assert err <= 1e-11 * scale, (name, err, scale)
+        if name == "inside cells":
+            assert counts["changed_cell"] == 0 and not counts["pattern_rebuilt"]
+        if name == "across cells":
+            assert counts["pattern_rebuilt"]
+            assert counts["changed_cell"] > 0 or counts["full_rebuild"]
+        assert counts["full_rebuild"] == (counts["changed_rank"] > 0)
+    assert iface.update_counts["updates"] == 3
