@@ -213,7 +213,7 @@ if args.parts in ("all", "scaling") and comm.rank == 0:
                              "command": " ".join(sys.argv)}
 if comm.rank == 0:
     inputs = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
-    results["inputs"] = inputs | {"short": SHORT, "ranks": comm.size}
+    results["inputs"] = inputs | {"short": SHORT, "mpi_ranks": comm.size}
     results_path.write_text(json.dumps(results, indent=2, default=float))
     plot(results)
     print(f"wrote {results_path}")
