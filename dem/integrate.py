@@ -12,72 +12,93 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from dem.contact import ContactMaterial, pair_table
-from dem.errors import BlowUpError, DomainError
-from dem.forces import NOUT, pair_forces, wall_forces
+from dem.errors import BlowUpError, DomainError, OverlapError
+from dem.forces import NO_CELL, NOUT, pair_forces, wall_forces
 from dem.neighbours import NeighbourList
 from dem.state import FREE, GHOST
 from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
 from dem.walls import WallSet
 
-__all__ = ["Simulation", "kick"]
+__all__ = ["Simulation"]
 
-KICK_PARALLEL_MIN = 1_000_000  # particles; below this the kicks run on one thread
+_NO_L, _NO_O, _EMPTY = np.zeros((3, 3)), np.zeros(3), np.zeros((0, 3))
 
-
-@njit(cache=True, inline="always")
-def _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd):
-    """v += h (F/m + g), omega += h T/I for particle i; wd[i] = work of the dissipative
-    parts (fd, td) in this kick, exact for the kinetic energy: h f . (u_old + u_new)/2."""
-    w = 0.0
-    for c in range(3):
-        u0 = v[i, c]
-        v[i, c] = u0 + h * (force[i, c] / mass[i] + g[c])
-        o0 = omega[i, c]
-        omega[i, c] = o0 + h * torque[i, c] / inertia[i]
-        w += 0.5 * h * (fd[i, c] * (u0 + v[i, c]) + td[i, c] * (o0 + omega[i, c]))
-    wd[i] = w
-
-
-@njit(parallel=True, cache=True)
-def _kick_par(x, v, omega, force, torque, fd, td, mass, inertia, kind, g, h, dt, wd):
-    for i in prange(v.shape[0]):
-        wd[i] = 0.0
+@njit(cache=True)
+def _drift(x, v, omega, force, torque, fe, fd, td, prev, mass, inertia, kind, g, h, dt, per,
+           lg, org):
+    """First half-kick v += h (F/m + g), omega += h T/I and drift x += dt (v + [L (x - o)])
+    of FREE particles; then every particle's force, torque, fe, fd, td move to prev (n, 15)
+    (the ledger needs them next half-step) and are cleared for the next force pass."""
+    for i in range(v.shape[0]):
         if kind[i] == 0:
-            _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd)
             for c in range(3):
-                x[i, c] += dt * v[i, c]
-        if dt > 0.0:  # drift kick: the forces are used up, clear them for the next pass
-            for c in range(3):
-                force[i, c] = torque[i, c] = fd[i, c] = td[i, c] = 0.0
+                v[i, c] += h * (force[i, c] / mass[i] + g[c])
+                omega[i, c] += h * torque[i, c] / inertia[i]
+            if per:
+                ax = x[i, 0] - org[0]
+                ay = x[i, 1] - org[1]
+                az = x[i, 2] - org[2]
+                for c in range(3):
+                    x[i, c] += dt * (v[i, c] + lg[c, 0] * ax + lg[c, 1] * ay + lg[c, 2] * az)
+            else:
+                for c in range(3):
+                    x[i, c] += dt * v[i, c]
+        for c in range(3):
+            prev[i, c] = force[i, c]
+            prev[i, 3 + c] = torque[i, c]
+            prev[i, 6 + c] = fe[i, c]
+            prev[i, 9 + c] = fd[i, c]
+            prev[i, 12 + c] = td[i, c]
+            force[i, c] = torque[i, c] = fe[i, c] = fd[i, c] = td[i, c] = 0.0
 
 
 @njit(cache=True)
-def _kick_ser(x, v, omega, force, torque, fd, td, mass, inertia, kind, g, h, dt, wd):
+def _kick(v, omega, force, torque, fe, fd, td, prev, mass, inertia, kind, g, h):
+    """Second half-kick of FREE particles, after booking the work of each force class over
+    the step's displacement dt v (v = the half-step velocity, what the drift used), by the
+    trapezoidal rule: (F_old + F_new)/2 . dx. Returns the work [J] of all contact forces,
+    of their conservative normal parts, of their damping parts, and of gravity.
+
+    With K~ = K - sum h^2/(2m) |F_tot|^2 - h^2/(2I) |T|^2 (h = dt/2) velocity Verlet gives
+    exactly K~_new - K~_old = sum (F_old + F_new)/2 . dx + (T_old + T_new)/2 . dtheta."""
+    wc = 0.0
+    we = 0.0
+    wd = 0.0
+    wg = 0.0
     for i in range(v.shape[0]):
-        wd[i] = 0.0
-        if kind[i] == 0:
-            _kick_one(i, v, omega, force, torque, fd, td, mass, inertia, g, h, wd)
-            for c in range(3):
-                x[i, c] += dt * v[i, c]
-        if dt > 0.0:  # drift kick: the forces are used up, clear them for the next pass
-            for c in range(3):
-                force[i, c] = torque[i, c] = fd[i, c] = td[i, c] = 0.0
+        if kind[i] != 0:
+            continue
+        for c in range(3):
+            dx = h * v[i, c]  # half of the displacement: the trapezoid's 1/2
+            dq = h * omega[i, c]
+            wc += (prev[i, c] + force[i, c]) * dx + (prev[i, 3 + c] + torque[i, c]) * dq
+            we += (prev[i, 6 + c] + fe[i, c]) * dx
+            wd += (prev[i, 9 + c] + fd[i, c]) * dx + (prev[i, 12 + c] + td[i, c]) * dq
+            wg += 2.0 * mass[i] * g[c] * dx
+            v[i, c] += h * (force[i, c] / mass[i] + g[c])
+            omega[i, c] += h * torque[i, c] / inertia[i]
+    return wc, we, wd, wg
 
 
-def kick(p, fd, td, g, h, drift_dt, wd) -> float:
-    """Half-kick of FREE particles of `Particles` p by h [s] then drift x += drift_dt v
-    (drift_dt = 0: kick only; drift_dt > 0 also zeroes force, torque, fd, td after use).
-    fd, td (n, 3): dissipative parts of force and torque; wd (n,) scratch. Returns the
-    work of the dissipative forces in this kick [J]."""
-    # serial on purpose: a kick is memory-bound and a parallel region costs a thread
-    # rendezvous, which on a loaded 2-core machine is worth more than the kick itself
-    kern = _kick_par if p.n >= KICK_PARALLEL_MIN else _kick_ser
-    kern(p.x, p.v, p.omega, p.force, p.torque, fd, td, p.mass, p.inertia, p.kind, g, h,
-         drift_dt, wd)
-    return float(wd.sum())
+@njit(cache=True)
+def _wall_work(wf0, wf1, p0, p1):
+    """Work [J] of the contacts on the walls over their displacement p1 - p0 (nw, 3), by
+    the trapezoidal rule, of the total, conservative normal and damping resultants (nw, 9)."""
+    w = np.zeros(3)
+    for k in range(wf0.shape[0]):
+        for c in range(3):
+            d = 0.5 * (p1[k, c] - p0[k, c])
+            for q in range(3):
+                w[q] += (wf0[k, 3 * q + c] + wf1[k, 3 * q + c]) * d
+    return w[0], w[1], w[2]
+
+
+def _trapezoid(prev, now, disp) -> float:
+    """sum (prev + now)/2 . disp over rows [J]."""
+    return 0.5 * float(((prev + now) * disp).sum())
 
 
 class Simulation:
@@ -97,11 +118,14 @@ class Simulation:
             above ``blowup_factor`` x the energy put in so far, raises `BlowUpError` after
             writing the last good state to ``state_path`` (default
             ``./dem_last_good_state.npz``).
+        cell: a `dem.periodic.PeriodicCell` (then ``p.v`` are fluctuations about the
+            cell's affine velocity field; no walls, ghosts or domain box).
     """
 
     def __init__(self, particles, materials, walls=(), gravity=(0.0, 0.0, 0.0), dt=None, *,
                  safety=None, force_dt=False, v_max=None, skin=None, domain=None,
-                 allow_overlap=False, blowup_factor=10.0, check_every=100, state_path=None):
+                 allow_overlap=False, blowup_factor=10.0, check_every=100, state_path=None,
+                 cell=None):
         self.p = particles
         mats = [materials] if isinstance(materials, ContactMaterial) else list(materials)
         if particles.material.max(initial=0) >= len(mats):
@@ -114,6 +138,14 @@ class Simulation:
         self.gravity = np.asarray(gravity, float).reshape(3)
         if particles.dim == 2 and self.gravity[2] != 0:
             raise ValueError("gravity[2] must be 0 for 2D disks")
+        self.cell = cell
+        if cell is not None:
+            if cell.dim != particles.dim:
+                raise ValueError(f"cell: a {cell.dim}D PeriodicCell for {particles.dim}D "
+                                 f"particles")
+            if len(self.walls) or domain is not None or (particles.kind == GHOST).any():
+                raise ValueError("cell: a periodic cell takes no walls, domain box or GHOST "
+                                 "particles")
         self.dt_crit = critical_dt(particles, mats, v_max)
         if safety is None:
             safety = DEFAULT_SAFETY[mats[0].law]
@@ -123,68 +155,96 @@ class Simulation:
         self.domain = None if domain is None else np.asarray(domain, float).reshape(2, 3)
         self.blowup_factor, self.check_every = float(blowup_factor), int(check_every)
         self.state_path = state_path or os.path.join(os.getcwd(), "dem_last_good_state.npz")
-        particles.check_overlaps(allow=allow_overlap)
+        if cell is None:
+            particles.check_overlaps(allow=allow_overlap)
         self.time, self.nsteps = 0.0, 0
         self._ghosts = np.flatnonzero(particles.kind == GHOST)
-        self._x0 = particles.x.copy()
-        self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0)
-        self._fd, self._td = np.zeros((particles.n, 3)), np.zeros((particles.n, 3))
-        self._wd, self._out = np.zeros(particles.n), np.empty((0, NOUT))
+        n = particles.n
+        self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0)
+        self._fe, self._fd, self._td = (np.zeros((n, 3)) for _ in range(3))
+        self._prev = np.zeros((n, 15))  # force, torque, fe, fd, td of the last evaluation
+        self._wf = np.zeros((len(self.walls), 9))  # wall resultants: total, fe, fd [N]
+        self._out = np.empty((0, NOUT))
         self._zeroed = False
-        self._elastic, _, _, pw, pg = self.compute_forces()
-        self._pw = (pw, pg)
+        self._elastic, self._spring = self._evaluate(True)
+        self._at, self._wf_prev = self._positions(), self._wf.copy()
+        if cell is not None and self.nl.builds:
+            self._check_cell_overlaps(allow_overlap)
         self._e0 = self.kinetic_energy().sum() + self._elastic
+        self._shadow0 = self._shadow()
         self._good = None
         self._check()
 
     # ---------------------------------------------------------------- forces
-    def compute_forces(self, update_history: bool = True):
-        """Contact forces at the current state into ``p.force``/``p.torque`` and
-        ``walls.force``. Returns (elastic energy [J], tangential spring loss [J], friction
-        dissipation estimate [J], wall power [W], ghost power [W]). ``update_history=False`` leaves the contact history
-        untouched (re-evaluation inside a staggered coupling iteration)."""
+    def _evaluate(self, update_history: bool):
+        """Contact forces now into p.force/p.torque, the private class arrays and the wall
+        resultants. Returns (elastic energy, tangential spring energy) [J]."""
         p, nl, w = self.p, self.nl, self.walls
-        if nl.needs_rebuild(p.x, w.point):
-            nl.build(p.x, p.radius, w.point, w.normal)
+        if nl.needs_rebuild(p.x, w.point, self.cell):
+            nl.build(p.x, p.radius, w.point, w.normal, self.cell)
             self._check_domain()
         h = [nl.hist, nl.slip, nl.etan, nl.whist, nl.wslip, nl.wetan]
         if not update_history:
             h = [a.copy() for a in h]
+        acc = (p.force, p.torque, self._fe, self._fd, self._td)
         if not self._zeroed:
-            for a in (p.force, p.torque, self._fd, self._td):
+            for a in acc:
                 a[:] = 0.0
         self._zeroed = False
-        m = max(len(nl.pi), len(nl.wi))
+        m = max(len(nl.pi), len(nl.wi), 1)
         if self._out.shape[0] < m:
             self._out = np.empty((int(1.2 * m) + 16, NOUT))
-        e1, l1, f1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
-                             self.table, h[0], h[1], h[2], self.dt, self._out, p.force,
-                             p.torque, self._fd, self._td)
-        e2, l2, f2, pw = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass,
-                                 p.material, w.point, w.normal, w.velocity, w.material,
-                                 self.table, h[3], h[4], h[5], self.dt, self._out, p.force,
-                                 p.torque, self._fd, self._td, w.force)
-        g = self._ghosts  # power of the prescribed ghosts on the free particles
+        cell = NO_CELL if self.cell is None else self.cell.as_kernel_args(nl.img)
+        e1, s1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
+                             self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell)
+        e2, s2 = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass, p.material,
+                             w.point, w.normal, w.velocity, w.material, self.table, h[3],
+                             h[4], h[5], self.dt, self._out, *acc, self._wf)
+        w.force[:] = self._wf[:, :3]
+        return e1 + e2, s1 + s2
+
+    def compute_forces(self, update_history: bool = True):
+        """Contact forces at the current state into ``p.force``/``p.torque`` and
+        ``walls.force``. Returns (elastic energy [J], tangential spring energy [J], power
+        of the damping forces on the FREE particles [W], wall power [W], ghost power [W]).
+        ``update_history=False`` leaves the contact history untouched (re-evaluation inside
+        a staggered coupling iteration)."""
+        e, es = self._evaluate(update_history)
+        p, w, g = self.p, self.walls, self._ghosts
+        if update_history:
+            self._elastic, self._spring = e, es
+        self._at = self._positions()  # where the forces now in the arrays were evaluated
+        f = p.kind == FREE
+        pd = float((self._fd[f] * p.v[f]).sum() + (self._td[f] * p.omega[f]).sum())
+        pw = -float((w.force * w.velocity).sum())
         pg = -float((p.force[g] * p.v[g]).sum() + (p.torque[g] * p.omega[g]).sum()) \
             if len(g) else 0.0
-        return e1 + e2, l1 + l2, f1 + f2, pw, pg
+        return e, es, pd, pw, pg
+
+    def _positions(self):
+        g = self._ghosts
+        return (self.p.x[g] if len(g) else _EMPTY), \
+            (self.walls.point.copy() if len(self.walls) else _EMPTY)
 
     # ---------------------------------------------------------------- stepping
     def step(self, n: int = 1):
         """Advance n steps of dt (velocity Verlet), with blow-up and domain checks."""
-        p, dt, led = self.p, self.dt, self._led
+        p, dt, led, cell = self.p, self.dt, self._led, self.cell
+        h = 0.5 * dt
+        per, lg, org = (0, _NO_L, _NO_O) if cell is None else \
+            (1, cell.velocity_gradient, cell.origin)
+        args = (p.force, p.torque, self._fe, self._fd, self._td, self._prev, p.mass,
+                p.inertia, p.kind, self.gravity, h)
         for _ in range(int(n)):
-            led["dissipated"] -= kick(p, self._fd, self._td, self.gravity, 0.5 * dt, dt,
-                                      self._wd)
+            _drift(p.x, p.v, p.omega, *args[:-1], h, dt, per, lg, org)
             self.walls.advance(dt)
-            self._zeroed = True  # the drift kick cleared the force arrays
-            e, loss, fric, pw, pg = self.compute_forces()
-            led["dissipated"] += loss - kick(p, self._fd, self._td, self.gravity, 0.5 * dt,
-                                             0.0, self._wd)
-            led["friction"] += fric
-            led["walls"] += 0.5 * dt * (self._pw[0] + pw)
-            led["ghosts"] += 0.5 * dt * (self._pw[1] + pg)
-            self._pw, self._elastic = (pw, pg), e
+            if cell is not None:
+                cell.advance(dt)
+            self._zeroed = True  # the drift cleared the force arrays
+            self._wf_prev[:] = self._wf
+            e, es = self._evaluate(True)
+            wc, we, wd, wg = _kick(p.v, p.omega, *args)
+            self._book(wc, we, wd, wg, e, es)
             self.time += dt
             self.nsteps += 1
             if self.nsteps % self.check_every == 0:
@@ -192,52 +252,120 @@ class Simulation:
         if self.nsteps % self.check_every:
             self._check()
 
-    def contact_forces(self, skip_ghost_pairs: bool = True):
-        """Touching pairs (m, 2) and the force on i by j (m, 3) [N] now.
+    def _book(self, wc, we, wd, wg, e, es):
+        """Energy ledger of one step, every term by the trapezoidal rule over the actual
+        displacements: free particles (from the kick), ghosts and walls (positions at the
+        two force evaluations). Contact work that is neither conservative normal work nor
+        spring energy is dissipated; the damping part is the work of the dashpots."""
+        led, p, g = self._led, self.p, self._ghosts
+        (xg0, wp0), (xg1, wp1) = self._at, self._positions()
+        self._at = (xg1, wp1)
+        wgh = wge = wgd = 0.0  # work of the contacts on the ghosts (all, fe, fd)
+        if len(g):
+            dx, dq = xg1 - xg0, self.dt * p.omega[g]
+            prev = self._prev[g]
+            wgh = _trapezoid(prev[:, 0:3], p.force[g], dx) \
+                + _trapezoid(prev[:, 3:6], p.torque[g], dq)
+            wge = _trapezoid(prev[:, 6:9], self._fe[g], dx)
+            wgd = _trapezoid(prev[:, 9:12], self._fd[g], dx) \
+                + _trapezoid(prev[:, 12:15], self._td[g], dq)
+        www = wwe = wwd = 0.0  # work of the contacts on the walls (all, fe, fd)
+        if len(self.walls):
+            www, wwe, wwd = _wall_work(self._wf_prev, self._wf, wp0, wp1)
+        contact = wc + wgh + www
+        dissipated = -(contact - (we + wge + wwe)) - (es - self._spring)
+        damping = -(wd + wgd + wwd)
+        led["dissipated"] += dissipated
+        led["friction"] += dissipated - damping
+        led["walls"] -= www
+        led["ghosts"] -= wgh
+        led["gravity"] += wg
+        self._elastic, self._spring = e, es
+    def _branches(self):
+        """Branch vectors (m, 3) [m] from i to (the nearest image of) j of the listed pairs."""
+        p, nl = self.p, self.nl
+        d = p.x[nl.pj] - p.x[nl.pi]
+        if self.cell is not None:
+            d += nl.img @ self.cell.h.T
+        return d
+
+    def contact_forces(self, skip_ghost_pairs: bool = True, return_branch: bool = False):
+        """Touching pairs (m, 2) and the force on i by j (m, 3) [N] now (and, if
+        ``return_branch``, the branch vectors (m, 3) [m] from i to j's image).
 
         The pair loop is evaluated again on copies of the contact history (the run keeps
         no per-contact forces), so calling this changes nothing. Pairs of two GHOST
         particles (a rigid clump's own contacts) are left out by default.
         """
-        from dem.forces import NOUT, pair_forces
-
         p, nl = self.p, self.nl
         out = np.zeros((max(len(nl.pi), 1), NOUT))
-        scratch = [np.zeros_like(p.force) for _ in range(4)]
+        scratch = [np.zeros_like(p.force) for _ in range(5)]
+        cell = NO_CELL if self.cell is None else self.cell.as_kernel_args(nl.img)
         pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material, self.table,
-                    nl.hist.copy(), nl.slip.copy(), nl.etan.copy(), self.dt, out, *scratch)
-        d = np.linalg.norm(p.x[nl.pj] - p.x[nl.pi], axis=1)
-        keep = d < p.radius[nl.pi] + p.radius[nl.pj]
+                    nl.hist.copy(), nl.slip.copy(), nl.etan.copy(), self.dt, out, *scratch,
+                    cell=cell, rows=True)
+        b = self._branches()
+        keep = np.linalg.norm(b, axis=1) < p.radius[nl.pi] + p.radius[nl.pj]
         if skip_ghost_pairs:
             keep &= ~((p.kind[nl.pi] == GHOST) & (p.kind[nl.pj] == GHOST))
-        return np.stack([nl.pi[keep], nl.pj[keep]], axis=1), -out[: len(nl.pi)][keep, :3]
+        res = np.stack([nl.pi[keep], nl.pj[keep]], axis=1), -out[: len(nl.pi)][keep, :3]
+        return res + (b[keep],) if return_branch else res
 
     # ---------------------------------------------------------------- energy ledger
     def kinetic_energy(self) -> np.ndarray:
-        """(translational, rotational) kinetic energy of FREE particles [J]."""
+        """(translational, rotational) kinetic energy of FREE particles [J] (in a periodic
+        cell: of the velocity fluctuations)."""
         p, f = self.p, self.p.kind == FREE
         return np.array([0.5 * (p.mass[f] * (p.v[f] ** 2).sum(1)).sum(),
                          0.5 * (p.inertia[f] * (p.omega[f] ** 2).sum(1)).sum()])
 
-    def energy(self) -> dict:
-        """Energy ledger [J] of the FREE particles: kinetic, elastic (contacts), dissipated
-        (exact work of the dissipative forces in the Verlet kicks plus the energy the
-        tangential springs lose without work), split into friction (sliding power x dt,
-        rolling resistance, spring losses) and damping (the rest: dashpots and clipping),
-        work of gravity, moving walls and ghosts; ``balance`` = kinetic + elastic +
-        dissipated - work - initial, zero up to the time discretisation error of the
-        conservative forces."""
+    def _shadow(self) -> float:
+        """sum dt^2/(8m) |F + m g|^2 + dt^2/(8I) |T|^2 over FREE particles [J]: K minus
+        this is what velocity Verlet changes by exactly the trapezoidal work."""
         p, f = self.p, self.p.kind == FREE
+        ft = p.force[f] + p.mass[f, None] * self.gravity
+        c = 0.125 * self.dt**2
+        return c * float(((ft**2).sum(1) / p.mass[f]).sum()
+                         + ((p.torque[f] ** 2).sum(1) / p.inertia[f]).sum())
+
+    def energy(self) -> dict:
+        """Energy ledger [J] of the FREE particles.
+
+        Keys: kinetic (translational, rotational), elastic (normal contact energy plus the
+        tangential springs), dissipated_damping (work of the normal dashpots, clipping and
+        the tangential dashpots while sticking), dissipated_friction (the rest of the
+        contact work that is not stored elastically: Coulomb sliding, rolling resistance,
+        spring energy lost on sliding, opening and stiffness changes), work_gravity,
+        work_walls, work_ghosts (work done on the particles), shadow (sum dt^2/(8m)|F|^2 +
+        dt^2/(8I)|T|^2, the velocity Verlet term), initial (kinetic + elastic at the
+        start) and ``balance`` = kinetic - shadow + elastic + dissipated - work -
+        (initial - initial shadow). Every work is taken by the
+        trapezoidal rule over the actual displacements, for which velocity Verlet closes
+        the kinetic part exactly: the balance is the time error of the conservative normal
+        forces only (and, in a deforming periodic cell, minus the work of the cell,
+        which is not booked)."""
         kt, kr = self.kinetic_energy()
-        wg = float((p.mass[f, None] * (p.x[f] - self._x0[f]) * self.gravity).sum())
         led = self._led
-        stored = kt + kr + self._elastic + led["dissipated"]
-        work = wg + led["walls"] + led["ghosts"]
+        sh = self._shadow()
+        stored = kt + kr - sh + self._elastic + led["dissipated"]
+        work = led["gravity"] + led["walls"] + led["ghosts"]
         return dict(kinetic_translational=kt, kinetic_rotational=kr, elastic=self._elastic,
                     dissipated_damping=led["dissipated"] - led["friction"],
                     dissipated_friction=led["friction"],
-                    work_gravity=wg, work_walls=led["walls"], work_ghosts=led["ghosts"],
-                    initial=self._e0, balance=stored - work - self._e0)
+                    work_gravity=led["gravity"], work_walls=led["walls"],
+                    work_ghosts=led["ghosts"], shadow=sh, initial=self._e0,
+                    balance=stored - work - (self._e0 - self._shadow0))
+
+    def _check_cell_overlaps(self, allow: bool):
+        b = self._branches()
+        ov = self.p.radius[self.nl.pi] + self.p.radius[self.nl.pj] - np.linalg.norm(b, axis=1)
+        if not allow and len(ov) and ov.max() > 0:
+            k = int(np.argmax(ov))
+            raise OverlapError(f"{int((ov > 0).sum())} overlapping particle pairs at the start "
+                               f"(through the periodic faces too); the largest overlap is "
+                               f"{ov[k]:.6g} m between particles "
+                               f"{(int(self.nl.pi[k]), int(self.nl.pj[k]))} (pass "
+                               f"allow_overlap=True to accept)")
 
     # ---------------------------------------------------------------- checks
     def _check_domain(self):
@@ -273,7 +401,6 @@ class Simulation:
 
     def contacts(self):
         """(i, j) (k,) int64 of touching particle pairs now."""
-        nl, x, r = self.nl, self.p.x, self.p.radius
-        d = np.linalg.norm(x[nl.pj] - x[nl.pi], axis=1)
-        t = d < r[nl.pi] + r[nl.pj]
+        nl, r = self.nl, self.p.radius
+        t = np.linalg.norm(self._branches(), axis=1) < r[nl.pi] + r[nl.pj]
         return nl.pi[t], nl.pj[t]

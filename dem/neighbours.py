@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["NeighbourList", "brute_force_pairs", "build_pairs", "carry_history",
-           "wall_candidates"]
+__all__ = ["NeighbourList", "brute_force_pairs", "build_pairs", "build_periodic_pairs",
+           "carry_history", "wall_candidates"]
 
 
 @njit(cache=True)
@@ -74,8 +74,7 @@ def _scan(i, x, radius, skin, cell, start, order, nc, out, pos):
     return cnt
 
 
-@njit(parallel=True, cache=True)
-def _pairs(x, radius, skin, lo, h, nc):
+def _pairs_py(x, radius, skin, lo, h, nc):
     n = x.shape[0]
     cell, start, order = _bin(x, lo, h, nc)
     counts = np.zeros(n + 1, np.int64)
@@ -93,6 +92,125 @@ def _pairs(x, radius, skin, lo, h, nc):
     return pi, pj
 
 
+PAIRS_PARALLEL_MIN = 20_000  # particles; below, a thread rendezvous costs more than it saves
+_pairs = njit(parallel=True, cache=True)(_pairs_py)
+_pairs_ser = njit(cache=True)(_pairs_py)
+
+
+@njit(cache=True)
+def _scan_periodic(i, x, s, radius, skin, h, cell, start, order, nb, out, img, pos):
+    """As `_scan` in a periodic cell: bins wrap around, each neighbour bin is visited once
+    (fewer than 3 bins along an axis), and j is seen through its nearest image
+    x_j + h k, k = -round(s_j - s_i) (written to img[pos + cnt] when pos >= 0)."""
+    c = cell[i]
+    b0 = c % nb[0]
+    b1 = (c // nb[0]) % nb[1]
+    b2 = c // (nb[0] * nb[1])
+    cnt = 0
+    for o2 in range(-1, 2):
+        if (nb[2] == 1 and o2 != 0) or (nb[2] == 2 and o2 == -1):
+            continue
+        z = (b2 + o2) % nb[2]
+        for o1 in range(-1, 2):
+            if (nb[1] == 1 and o1 != 0) or (nb[1] == 2 and o1 == -1):
+                continue
+            y = (b1 + o1) % nb[1]
+            for o0 in range(-1, 2):
+                if (nb[0] == 1 and o0 != 0) or (nb[0] == 2 and o0 == -1):
+                    continue
+                xx = (b0 + o0) % nb[0]
+                cc = (z * nb[1] + y) * nb[0] + xx
+                for q in range(start[cc], start[cc + 1]):
+                    j = order[q]
+                    if j <= i:
+                        continue
+                    k0 = -np.floor(s[j, 0] - s[i, 0] + 0.5)
+                    k1 = -np.floor(s[j, 1] - s[i, 1] + 0.5)
+                    k2 = -np.floor(s[j, 2] - s[i, 2] + 0.5)
+                    rx = x[j, 0] - x[i, 0] + h[0, 0] * k0 + h[0, 1] * k1 + h[0, 2] * k2
+                    ry = x[j, 1] - x[i, 1] + h[1, 0] * k0 + h[1, 1] * k1 + h[1, 2] * k2
+                    rz = x[j, 2] - x[i, 2] + h[2, 0] * k0 + h[2, 1] * k1 + h[2, 2] * k2
+                    cut = radius[i] + radius[j] + skin
+                    if rx * rx + ry * ry + rz * rz < cut * cut:
+                        if pos >= 0:
+                            out[pos + cnt] = j
+                            img[pos + cnt, 0] = k0
+                            img[pos + cnt, 1] = k1
+                            img[pos + cnt, 2] = k2
+                        cnt += 1
+    return cnt
+
+
+def _pairs_periodic_py(x, s, radius, skin, h, nb):
+    n = x.shape[0]
+    cell = np.empty(n, np.int64)
+    for i in range(n):
+        c0 = min(max(int(s[i, 0] * nb[0]), 0), nb[0] - 1)
+        c1 = min(max(int(s[i, 1] * nb[1]), 0), nb[1] - 1)
+        c2 = min(max(int(s[i, 2] * nb[2]), 0), nb[2] - 1)
+        cell[i] = (c2 * nb[1] + c1) * nb[0] + c0
+    start = np.zeros(nb[0] * nb[1] * nb[2] + 1, np.int64)
+    for i in range(n):
+        start[cell[i] + 1] += 1
+    for c in range(start.shape[0] - 1):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    counts = np.zeros(n + 1, np.int64)
+    dummy = np.empty(0, np.int64)
+    dimg = np.empty((0, 3))
+    for i in prange(n):
+        counts[i + 1] = _scan_periodic(i, x, s, radius, skin, h, cell, start, order, nb,
+                                       dummy, dimg, -1)
+    for i in range(n):
+        counts[i + 1] += counts[i]
+    pj = np.empty(counts[n], np.int64)
+    pi = np.empty(counts[n], np.int64)
+    img = np.empty((counts[n], 3))
+    for i in prange(n):
+        _scan_periodic(i, x, s, radius, skin, h, cell, start, order, nb, pj, img, counts[i])
+        for k in range(counts[i], counts[i + 1]):
+            pi[k] = i
+    return pi, pj, img
+
+
+_pairs_periodic = njit(parallel=True, cache=True)(_pairs_periodic_py)
+_pairs_periodic_ser = njit(cache=True)(_pairs_periodic_py)
+
+
+def build_periodic_pairs(x, radius, skin: float, h, dim: int = 3):
+    """Pairs (pi, pj, img) of a periodic cell with column vectors h (3, 3) [m] (periodic
+    along the first ``dim`` axes; in 2D h[:, 2] = e_z is not periodic): |x_j + h img - x_i|
+    < r_i + r_j + skin, img (m, 3) float integer shifts, one nearest image per pair, i < j,
+    sorted by (i, j). x must lie in the cell (fractional coordinates in [0, 1))."""
+    n = x.shape[0]
+    if n < 2:
+        return np.empty(0, np.int64), np.empty(0, np.int64), np.zeros((0, 3))
+    hinv = np.linalg.inv(h)
+    s = x @ hinv.T
+    if dim == 2:
+        s[:, 2] = 0.0
+    cut = 2.0 * radius.max() + skin
+    width = 1.0 / np.linalg.norm(hinv, axis=1)  # distance between opposite faces [m]
+    nb = np.ones(3, np.int64)
+    for a in range(dim):
+        if width[a] <= 2.0 * cut:
+            raise ValueError(f"periodic cell too thin along axis {a}: face distance "
+                             f"{width[a]:.4g} m must exceed 2 (2 r_max + skin) = {2 * cut:.4g} m "
+                             f"(one image per pair)")
+        nb[a] = max(1, int(width[a] / cut))
+    while np.prod(nb) > 8 * n + 64:
+        nb = np.maximum(nb // 2, 1)
+    kern = _pairs_periodic if n >= PAIRS_PARALLEL_MIN else _pairs_periodic_ser
+    pi, pj, img = kern(x, s, radius, float(skin), np.ascontiguousarray(h), nb)
+    key = pi * n + pj
+    o = np.argsort(key, kind="stable")
+    return pi[o], pj[o], img[o]
+
+
 def build_pairs(x, radius, skin: float):
     """Pairs (pi, pj) (m,) int64, i < j, with |x_j - x_i| < r_i + r_j + skin; sorted by
     (i, j). x (n, 3) [m], radius (n,) [m], skin [m] >= 0."""
@@ -106,7 +224,8 @@ def build_pairs(x, radius, skin: float):
     while np.prod(nc) > 8 * n + 64:  # sparse clouds: grow cells, keep memory O(N)
         h *= 2.0
         nc = np.maximum(np.floor(span / h).astype(np.int64) + 1, 1)
-    pi, pj = _pairs(x, radius, float(skin), lo, float(h), nc)
+    kern = _pairs if n >= PAIRS_PARALLEL_MIN else _pairs_ser
+    pi, pj = kern(x, radius, float(skin), lo, float(h), nc)
     key = pi * n + pj
     s = np.argsort(key, kind="stable")
     return pi[s], pj[s]
@@ -156,9 +275,11 @@ def _max_disp2(x, x0):
 class NeighbourList:
     """Verlet list of particle pairs and particle-wall pairs with their contact history.
 
-    Attributes: ``pi, pj`` (m,) int64; ``hist`` (m, 3) tangential springs [m]; ``slip``
-    (m,) int8 sliding flags; ``etan`` (m,) spring energies [J]; the same for walls as
-    ``wi, ww, whist, wslip, wetan``; ``builds`` (number of rebuilds)."""
+    Attributes: ``pi, pj`` (m,) int64; ``img`` (m, 3) periodic image shifts of j (zeros
+    without a cell); ``hist`` (m, 3) tangential springs [m]; ``slip`` (m,) int8 sliding
+    flags; ``etan`` (m,) spring energies [J]; the same for walls as ``wi, ww, whist, wslip,
+    wetan``; ``builds`` (number of rebuilds). History is keyed by (i, j), so it survives
+    particles wrapping across periodic faces (one image per pair)."""
 
     def __init__(self, n: int, skin: float):
         if not skin >= 0:
@@ -166,26 +287,47 @@ class NeighbourList:
         self.n, self.skin, self.builds = n, float(skin), 0
         e = np.empty(0, np.int64)
         self.pi, self.pj, self.wi, self.ww = e, e.copy(), e.copy(), e.copy()
+        self.img = np.zeros((0, 3))
         self.hist, self.whist = np.zeros((0, 3)), np.zeros((0, 3))
         self.slip, self.wslip = np.zeros(0, np.int8), np.zeros(0, np.int8)
         self.etan, self.wetan = np.zeros(0), np.zeros(0)
         self._x0 = None
         self._wp0 = None
+        self._h0 = None
+        self._cut = 0.0
 
-    def needs_rebuild(self, x, wall_p) -> bool:
+    def needs_rebuild(self, x, wall_p, cell=None) -> bool:
+        """True once two particles (or a particle and a wall) may have closed the skin.
+        In a deforming periodic cell the affine part of the motion is taken out of the
+        displacements and the stretch of the cell since the build is added instead."""
         if self._x0 is None:
             return True
-        d = np.sqrt(_max_disp2(x, self._x0))
-        if wall_p.shape[0]:
-            d += np.sqrt(((wall_p - self._wp0) ** 2).sum(axis=1).max())
-        return d > 0.5 * self.skin
+        if cell is None:
+            d = np.sqrt(_max_disp2(x, self._x0))
+            if wall_p.shape[0]:
+                d += np.sqrt(((wall_p - self._wp0) ** 2).sum(axis=1).max())
+            return d > 0.5 * self.skin
+        m = cell.h @ np.linalg.inv(self._h0)
+        d = np.sqrt(_max_disp2(x - cell.origin, (self._x0 - cell.origin) @ m.T))
+        stretch = np.linalg.norm(m - np.eye(3), 2) * self._cut
+        return 2.0 * d + stretch > self.skin
 
-    def build(self, x, radius, wall_p, wall_n):
+    def build(self, x, radius, wall_p, wall_n, cell=None):
+        """Rebuild the lists at positions x (n, 3) [m]; with a `dem.periodic.PeriodicCell`
+        the particles are first wrapped into the cell (x modified in place)."""
         n = self.n
-        pi, pj = build_pairs(x, radius, self.skin)
+        if cell is None:
+            pi, pj = build_pairs(x, radius, self.skin)
+            img = np.zeros((len(pi), 3))
+        else:
+            cell.wrap(x)
+            pi, pj, img = build_periodic_pairs(x - cell.origin, radius, self.skin, cell.h,
+                                               cell.dim)
+            self._h0 = cell.h.copy()
+            self._cut = 2.0 * float(radius.max()) + self.skin
         self.hist, self.slip, self.etan = carry_history(
             self.pi * n + self.pj, pi * n + pj, self.hist, self.slip, self.etan)
-        self.pi, self.pj = pi, pj
+        self.pi, self.pj, self.img = pi, pj, img
         nw = max(wall_p.shape[0], 1)
         wi, ww = wall_candidates(x, radius, wall_p, wall_n, self.skin)
         self.whist, self.wslip, self.wetan = carry_history(

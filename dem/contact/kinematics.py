@@ -14,7 +14,8 @@ import math
 
 from numba import njit
 
-__all__ = ["coulomb_tangential", "pair_kinematics", "project_history", "wall_kinematics"]
+__all__ = ["coulomb_tangential", "pair_kinematics", "periodic_pair_kinematics", "project_history",
+           "wall_kinematics"]
 
 
 @njit(cache=True, inline="always")
@@ -28,14 +29,9 @@ def _relative(nx, ny, nz, vix, viy, viz, vjx, vjy, vjz, wx, wy, wz):
 
 
 @njit(cache=True, inline="always")
-def pair_kinematics(x, v, omega, radius, mass, i, j):
-    """Kinematics of pair (i, j) from arrays x, v, omega (n, 3), radius, mass (n,).
-
-    Returns (nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, arm_i, arm_j) with
-    reff = r_i r_j/(r_i + r_j) [m] and meff = m_i m_j/(m_i + m_j) [kg]."""
-    dx = x[j, 0] - x[i, 0]
-    dy = x[j, 1] - x[i, 1]
-    dz = x[j, 2] - x[i, 2]
+def _branch_kinematics(v, omega, radius, mass, i, j, dx, dy, dz, ux, uy, uz):
+    """Kinematics of pair (i, j) with branch vector d = (dx, dy, dz) from i to j [m] and an
+    extra velocity u [m/s] of j's image relative to j (periodic cells; else 0)."""
     d = math.sqrt(dx * dx + dy * dy + dz * dz)
     ri = radius[i]
     rj = radius[j]
@@ -49,10 +45,35 @@ def pair_kinematics(x, v, omega, radius, mass, i, j):
     wy = ai * omega[i, 1] + aj * omega[j, 1]
     wz = ai * omega[i, 2] + aj * omega[j, 2]
     vn, vtx, vty, vtz = _relative(nx, ny, nz, v[i, 0], v[i, 1], v[i, 2],
-                                  v[j, 0], v[j, 1], v[j, 2], wx, wy, wz)
+                                  v[j, 0] + ux, v[j, 1] + uy, v[j, 2] + uz, wx, wy, wz)
     reff = ri * rj / (ri + rj)
     meff = mass[i] * mass[j] / (mass[i] + mass[j])
     return nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj
+
+
+@njit(cache=True, inline="always")
+def pair_kinematics(x, v, omega, radius, mass, i, j):
+    """Kinematics of pair (i, j) from arrays x, v, omega (n, 3), radius, mass (n,).
+
+    Returns (nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, arm_i, arm_j) with
+    reff = r_i r_j/(r_i + r_j) [m] and meff = m_i m_j/(m_i + m_j) [kg]."""
+    return _branch_kinematics(v, omega, radius, mass, i, j, x[j, 0] - x[i, 0],
+                              x[j, 1] - x[i, 1], x[j, 2] - x[i, 2], 0.0, 0.0, 0.0)
+
+
+@njit(cache=True, inline="always")
+def periodic_pair_kinematics(x, v, omega, radius, mass, i, j, h, lg, ix, iy, iz):
+    """`pair_kinematics` of i with the image x_j + h (ix, iy, iz) of j in a periodic cell
+    with column vectors h (3, 3) [m] deforming at the velocity gradient lg (3, 3) [1/s].
+    v holds fluctuations about the affine field L x, so the image of j moves, relative to
+    i, at L d on top of v_j - v_i (the velocity jump across the cell is L h (ix, iy, iz))."""
+    dx = x[j, 0] - x[i, 0] + h[0, 0] * ix + h[0, 1] * iy + h[0, 2] * iz
+    dy = x[j, 1] - x[i, 1] + h[1, 0] * ix + h[1, 1] * iy + h[1, 2] * iz
+    dz = x[j, 2] - x[i, 2] + h[2, 0] * ix + h[2, 1] * iy + h[2, 2] * iz
+    ux = lg[0, 0] * dx + lg[0, 1] * dy + lg[0, 2] * dz
+    uy = lg[1, 0] * dx + lg[1, 1] * dy + lg[1, 2] * dz
+    uz = lg[2, 0] * dx + lg[2, 1] * dy + lg[2, 2] * dz
+    return _branch_kinematics(v, omega, radius, mass, i, j, dx, dy, dz, ux, uy, uz)
 
 
 @njit(cache=True, inline="always")
@@ -93,8 +114,8 @@ def coulomb_tangential(kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt
     below it. When the limit is hit the force becomes mud |fn| along the trial force and
     the spring is reset to carry it alone (LAMMPS: the *total* tangential force is capped;
     LIGGGHTS caps the spring only, so its dashpot can exceed the Coulomb limit). Returns (ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip,
-    e_pre, e_t, p_fric): total and dissipative force on j [N] (the dashpot when sticking,
-    the whole Coulomb force when sliding), new spring, flag, spring energy before the
+    e_pre, e_t, p_fric): total force on j and its damping part [N] (the dashpot while
+    sticking, zero while sliding: the Coulomb force is then friction), new spring, flag, spring energy before the
     increment (at the current kt) and after [J], sliding power ft . vt [W]."""
     e_pre = 0.5 * kt * (sx * sx + sy * sy + sz * sz)
     sx += vtx * dt
@@ -111,10 +132,10 @@ def coulomb_tangential(kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt
     if ft > mu * fc and ft > 0.0:
         scale = mud * fc / ft
         ftx, fty, ftz = ftx * scale, fty * scale, ftz * scale
-        fdx, fdy, fdz = ftx, fty, ftz
         if kt > 0.0:
             sx, sy, sz = ftx / kt, fty / kt, ftz / kt
         p_fric = ftx * vtx + fty * vty + ftz * vtz
+        fdx = fdy = fdz = 0.0  # sliding: the Coulomb force is friction, not damping
         slip = 1
     e_t = 0.5 * kt * (sx * sx + sy * sy + sz * sz)
     return ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric
