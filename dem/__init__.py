@@ -1,7 +1,9 @@
 """dem: a numba discrete element engine (spheres and disks). Imports without dolfinx.
 
 Public API: `Particles` (FREE, GHOST, FIXED kinds), `ContactMaterial`, `PlaneWall`,
-`box_walls`, `Simulation`, the critical time step helpers and the named errors.
+`box_walls`, `Simulation`, `relax` and `ServoWall`, `PeriodicCell`, `RigidBody`,
+`DistributedSimulation` (MPI domain decomposition), the critical time step helpers and
+the named errors.
 """
 
 from dem.contact import LAWS, ContactMaterial
@@ -11,11 +13,14 @@ from dem.errors import (BlowUpError, DemError, DomainError, MaterialError, Overl
 from dem.integrate import Simulation
 from dem.neighbours import NeighbourList, build_pairs
 from dem.parallel import DistributedSimulation
+from dem.periodic import PeriodicCell, cell_stress
+from dem.rigid import RigidBody, read_surface, sample_surface
 from dem.state import FIXED, FREE, GHOST, Particles
 from dem.timestep import critical_dt, hertz_dt, rayleigh_dt
 from dem.walls import PlaneWall, WallSet, box_walls
 
-__all__ = ["DistributedSimulation", "ServoWall", "relax", "unbalanced_force_ratio", "FIXED", "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
+__all__ = ["DistributedSimulation", "PeriodicCell", "cell_stress", "RigidBody", "read_surface",
+           "sample_surface", "ServoWall", "relax", "unbalanced_force_ratio", "FIXED", "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
            "DomainError", "MaterialError", "NeighbourList", "OverlapError", "Particles",
            "PlaneWall", "Simulation", "TimeStepError", "WallSet", "box_walls", "build_pairs",
            "critical_dt", "hertz_dt", "rayleigh_dt"]
