@@ -6,9 +6,15 @@ cache works). Two drivers share the per-contact code:
 
 - rows: per-contact results go to rows of ``out`` in a ``prange`` loop, then a serial
   scatter sums them onto particles in contact order (used from ``PARALLEL_MIN``
-  contacts on, and whenever the caller wants the rows);
+  candidate pairs on when numba runs more than one thread, and whenever the caller wants
+  the rows);
 - fused: one serial loop that resolves a contact into a scratch row and scatters it at
   once (no m x NOUT array streamed through memory twice).
+
+Most candidate pairs of a Verlet list are open: a sqrt-free pre-test
+(``d^2 > (r_i + r_j)^2 (1 + 1e-12)``, which implies delta <= 0 whatever the rounding)
+releases them before their kinematics and parameter row are touched; walls use the exact
+open test of `wall_kinematics` up front.
 
 Both add the same numbers in the same order, so results do not depend on the driver, the
 thread count or scheduling.
@@ -28,7 +34,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from dem.contact import P_LAW, P_MUR
 from dem.contact.hertz_mindlin import hertz_mindlin_force
@@ -103,11 +109,40 @@ def _contact(k, kin, prm, hist, slip, etan, dt, wrx, wry, wrz, out):
     etan[k] = e_t
 
 
+_SURE_OPEN = 1.0 + 1e-12
+"""d^2 > (r_i + r_j)^2 x this: the pair is open whatever the rounding of d = sqrt(d^2)."""
+
+
+@njit(cache=True, inline="always")
+def _release(k, hist, slip, etan):
+    """An open contact k: a loaded spring is released (as `_contact` does)."""
+    if etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0 or hist[k, 1] != 0.0 \
+            or hist[k, 2] != 0.0:
+        hist[k, 0] = hist[k, 1] = hist[k, 2] = 0.0
+        slip[k] = 0
+        etan[k] = 0.0
+
+
+@njit(cache=True, inline="always")
+def _surely_open(x, radius, i, j):
+    """Cheap pre-test (no sqrt, no parameter row): True only for pairs `_contact` would
+    find open (delta <= 0), so skipping them changes no result bit."""
+    dx = x[j, 0] - x[i, 0]
+    dy = x[j, 1] - x[i, 1]
+    dz = x[j, 2] - x[i, 2]
+    rs = radius[i] + radius[j]
+    return dx * dx + dy * dy + dz * dz > rs * rs * _SURE_OPEN
+
+
 @njit(cache=True, inline="always")
 def _pair_one(k, pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
               per, h, lg, img, out):
     i = pi[k]
     j = pj[k]
+    if not per and _surely_open(x, radius, i, j):
+        out[18] = 0.0
+        _release(k, hist, slip, etan)
+        return
     if per:
         kin = periodic_pair_kinematics(x, v, omega, radius, mass, i, j, h, lg, img[k, 0],
                                        img[k, 1], img[k, 2])
@@ -146,15 +181,39 @@ def _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, e
 @njit(cache=True)
 def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
                 per, h, lg, img, row, force, torque, fe, fd, td):
-    """Serial resolve-and-scatter; row (NOUT,) scratch. Returns (elastic, spring) [J]."""
+    """Serial resolve-and-scatter; row (NOUT,) scratch. Returns (elastic, spring) [J].
+    Without a cell, pairs that are surely open are released without touching their
+    parameter row (one loop per case: a shared loop body compiles to slow code)."""
     e = 0.0
     es = 0.0
+    if per:
+        for k in range(pi.shape[0]):
+            i = pi[k]
+            j = pj[k]
+            kin = periodic_pair_kinematics(x, v, omega, radius, mass, i, j, h, lg, img[k, 0],
+                                           img[k, 1], img[k, 2])
+            _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
+                     omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
+                     omega[i, 2] - omega[j, 2], row)
+            if row[18] == 0.0:
+                continue
+            _scatter_row(i, j, row, force, torque, fe, fd, td)
+            e += row[18]
+            es += row[22]
+        return e, es
     for k in range(pi.shape[0]):
-        _pair_one(k, pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
-                  dt, per, h, lg, img, row)
+        i = pi[k]
+        j = pj[k]
+        if _surely_open(x, radius, i, j):
+            _release(k, hist, slip, etan)
+            continue
+        kin = pair_kinematics(x, v, omega, radius, mass, i, j)
+        _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
+                 omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
+                 omega[i, 2] - omega[j, 2], row)
         if row[18] == 0.0:
             continue
-        _scatter_row(pi[k], pj[k], row, force, torque, fe, fd, td)
+        _scatter_row(i, j, row, force, torque, fe, fd, td)
         e += row[18]
         es += row[22]
     return e, es
@@ -182,14 +241,15 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
 
     pi, pj (m,) int64 candidate pairs; hist (m, 3) tangential springs [m]; slip (m,) int8;
     etan (m,) spring energies [J]; out (>= m, NOUT) rows (written if ``rows`` or from
-    ``PARALLEL_MIN`` contacts on; else only out[0] is used as scratch); cell: (flag, h
+    ``PARALLEL_MIN`` contacts on with more than one numba thread; else only out[0] is used
+    as scratch); cell: (flag, h
     (3, 3) [m], velocity gradient (3, 3) [1/s], image shifts (m, 3)) of a periodic cell.
     Returns (elastic energy [J], tangential spring energy [J])."""
     m = pi.shape[0]
     if m == 0:
         return 0.0, 0.0
     per, h, lg, img = cell
-    if rows or m >= PARALLEL_MIN:
+    if rows or (m >= PARALLEL_MIN and get_num_threads() > 1):
         _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
                    per, h, lg, img, out)
         return _scatter(pi, pj, out, force, torque, fe, fd, td)
@@ -215,14 +275,21 @@ def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_
     Returns (elastic, spring) [J]."""
     e = 0.0
     es = 0.0
+    row = out[0]
     for k in range(wi.shape[0]):
-        row = out[k]
+        i = wi[k]
+        w = ww[k]
+        # open (the test of `wall_kinematics`, same arithmetic): release, no parameter row
+        if radius[i] - ((x[i, 0] - wall_p[w, 0]) * wall_n[w, 0]
+                        + (x[i, 1] - wall_p[w, 1]) * wall_n[w, 1]
+                        + (x[i, 2] - wall_p[w, 2]) * wall_n[w, 2]) <= 0.0:
+            _release(k, hist, slip, etan)
+            continue
         _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
                   wall_mat, table, hist, slip, etan, dt, row)
         if row[18] == 0.0:
             continue
-        _scatter_row(wi[k], -1, row, force, torque, fe, fd, td)
-        w = ww[k]
+        _scatter_row(i, -1, row, force, torque, fe, fd, td)
         for c in range(3):  # the row's "particle j" is the wall
             wall_f[w, c] += row[c]
             wall_f[w, 3 + c] += row[19 + c]
