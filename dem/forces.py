@@ -47,6 +47,8 @@ PARALLEL_MIN = 4096
 
 __all__ = ["NOUT", "PARALLEL_MIN", "apply_law", "pair_forces", "wall_forces"]
 
+_NOHIT = np.zeros(0, np.int8)
+
 NO_CELL = (0, np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((0, 3)))
 """(periodic flag, h, velocity gradient, image shifts) of a simulation without a cell."""
 
@@ -154,8 +156,13 @@ def _pair_one(k, pi, pj, x, v, omega, radius, mass, material, table, hist, slip,
 
 
 @njit(cache=True, inline="always")
-def _scatter_row(i, j, row, force, torque, fe, fd, td):
-    """Add one touching row to particles i and j (j < 0: a wall, i only)."""
+def _scatter_row(i, j, row, force, torque, fe, fd, td, hit):
+    """Add one touching row to particles i and j (j < 0: a wall, i only); flag them in hit
+    (n,) int8 (if not empty): the integrator then knows whose force arrays are non-zero."""
+    if hit.shape[0] > 0:
+        hit[i] = 1
+        if j >= 0:
+            hit[j] = 1
     for c in range(3):
         force[i, c] -= row[c]
         torque[i, c] += row[3 + c]
@@ -180,7 +187,7 @@ def _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, e
 
 @njit(cache=True)
 def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
-                per, h, lg, img, row, force, torque, fe, fd, td):
+                per, h, lg, img, row, force, torque, fe, fd, td, hit):
     """Serial resolve-and-scatter; row (NOUT,) scratch. Returns (elastic, spring) [J].
     Without a cell, pairs that are surely open are released without touching their
     parameter row (one loop per case: a shared loop body compiles to slow code)."""
@@ -197,7 +204,7 @@ def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
                      omega[i, 2] - omega[j, 2], row)
             if row[18] == 0.0:
                 continue
-            _scatter_row(i, j, row, force, torque, fe, fd, td)
+            _scatter_row(i, j, row, force, torque, fe, fd, td, hit)
             e += row[18]
             es += row[22]
         return e, es
@@ -213,14 +220,14 @@ def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
                  omega[i, 2] - omega[j, 2], row)
         if row[18] == 0.0:
             continue
-        _scatter_row(i, j, row, force, torque, fe, fd, td)
+        _scatter_row(i, j, row, force, torque, fe, fd, td, hit)
         e += row[18]
         es += row[22]
     return e, es
 
 
 @njit(cache=True)
-def _scatter(pi, pj, out, force, torque, fe, fd, td):
+def _scatter(pi, pj, out, force, torque, fe, fd, td, hit):
     """Sum rows onto particles in contact order (pj < 0: wall contacts, i only). Returns
     (elastic energy, tangential spring energy) [J]."""
     e = 0.0
@@ -228,14 +235,14 @@ def _scatter(pi, pj, out, force, torque, fe, fd, td):
     for k in range(pi.shape[0]):
         if out[k, 18] == 0.0:
             continue  # not touching: the rest of the row is not written
-        _scatter_row(pi[k], pj[k], out[k], force, torque, fe, fd, td)
+        _scatter_row(pi[k], pj[k], out[k], force, torque, fe, fd, td, hit)
         e += out[k, 18]
         es += out[k, 22]
     return e, es
 
 
 def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
-                out, force, torque, fe, fd, td, cell=NO_CELL, rows=False):
+                out, force, torque, fe, fd, td, cell=NO_CELL, rows=False, hit=None):
     """Add particle-particle contact forces to ``force``/``torque`` (n, 3), their
     conservative normal part to ``fe`` and their damping part to ``fd``/``td``.
 
@@ -244,17 +251,19 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
     ``PARALLEL_MIN`` contacts on with more than one numba thread; else only out[0] is used
     as scratch); cell: (flag, h
     (3, 3) [m], velocity gradient (3, 3) [1/s], image shifts (m, 3)) of a periodic cell.
+    hit (n,) int8, optional: set to 1 for every particle that receives a contact.
     Returns (elastic energy [J], tangential spring energy [J])."""
     m = pi.shape[0]
     if m == 0:
         return 0.0, 0.0
+    hit = _NOHIT if hit is None else hit
     per, h, lg, img = cell
     if rows or (m >= PARALLEL_MIN and get_num_threads() > 1):
         _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
                    per, h, lg, img, out)
-        return _scatter(pi, pj, out, force, torque, fe, fd, td)
+        return _scatter(pi, pj, out, force, torque, fe, fd, td, hit)
     return _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
-                       dt, per, h, lg, img, out[0], force, torque, fe, fd, td)
+                       dt, per, h, lg, img, out[0], force, torque, fe, fd, td, hit)
 
 
 @njit(cache=True, inline="always")
@@ -269,7 +278,7 @@ def _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wa
 
 @njit(cache=True)
 def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u, wall_mat,
-              table, hist, slip, etan, dt, out, force, torque, fe, fd, td, wall_f):
+              table, hist, slip, etan, dt, out, force, torque, fe, fd, td, wall_f, hit):
     """Serial wall contacts (few) straight into particles and walls. wall_f (nw, 9):
     resultant on each wall of the total, conservative normal and damping forces [N].
     Returns (elastic, spring) [J]."""
@@ -289,7 +298,7 @@ def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_
                   wall_mat, table, hist, slip, etan, dt, row)
         if row[18] == 0.0:
             continue
-        _scatter_row(i, -1, row, force, torque, fe, fd, td)
+        _scatter_row(i, -1, row, force, torque, fe, fd, td, hit)
         for c in range(3):  # the row's "particle j" is the wall
             wall_f[w, c] += row[c]
             wall_f[w, 3 + c] += row[19 + c]
@@ -301,7 +310,7 @@ def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_
 
 def wall_forces(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
                 wall_mat, table, hist, slip, etan, dt, out, force, torque, fe, fd, td,
-                wall_f):
+                wall_f, hit=None):
     """Particle-wall forces, as `pair_forces` for (particle, wall) pairs wi, ww (m,);
     wall_f (nw, 9) receives the resultants on each wall of the total, conservative normal
     and damping forces [N]. Returns (elastic [J], spring energy [J])."""
@@ -310,4 +319,4 @@ def wall_forces(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wal
         return 0.0, 0.0
     return _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
                      wall_mat, table, hist, slip, etan, dt, out, force, torque, fe, fd, td,
-                     wall_f)
+                     wall_f, _NOHIT if hit is None else hit)

@@ -26,12 +26,31 @@ __all__ = ["Simulation"]
 
 _NO_L, _NO_O, _EMPTY = np.zeros((3, 3)), np.zeros(3), np.zeros((0, 3))
 
+# The kernels below are written out in full: per-particle helper functions (inlined by
+# numba's IR inliner or left to LLVM) made these loops several times slower.
+#
+# hit (n,) int8 flags the particles that received a contact in the last force pass (set
+# by `dem.forces`): the others have zero force, torque, fe, fd, td, so `_kick` and
+# `_kick_drift` neither read nor clear their force rows and leave their spin alone
+# (v += h (0/m + g) is v += h g to the bit, omega += h 0/I is omega). `_drift` reads and
+# clears every row whatever the flags say (the arrays may have been written from outside
+# between two calls of `Simulation.step`).
+
 @njit(cache=True)
-def _drift(x, v, omega, force, torque, fe, fd, td, prev, mass, inertia, kind, g, h, dt, per,
-           lg, org):
+def _drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, dt, per, lg,
+           org, x0, hit):
     """First half-kick v += h (F/m + g), omega += h T/I and drift x += dt (v + [L (x - o)])
-    of FREE particles; then every particle's force, torque, fe, fd, td move to prev (n, 15)
-    (the ledger needs them next half-step) and are cleared for the next force pass."""
+    of FREE particles; the forces still in the arrays (the last evaluation) do their half
+    of the trapezoidal work over the step's displacement, then every particle's force,
+    torque, fe, fd, td and hit flag are cleared for the next force pass. Returns the work
+    [J] of all contact forces, of their conservative normal parts and of their damping
+    parts (this half), and the largest squared displacement [m^2] from x0 (the neighbour
+    list's build positions; 0 if x0 is empty)."""
+    wc = 0.0
+    we = 0.0
+    wd = 0.0
+    d2 = 0.0
+    track = x0.shape[0] == x.shape[0]
     for i in range(v.shape[0]):
         if kind[i] == 0:
             for c in range(3):
@@ -46,21 +65,30 @@ def _drift(x, v, omega, force, torque, fe, fd, td, prev, mass, inertia, kind, g,
             else:
                 for c in range(3):
                     x[i, c] += dt * v[i, c]
+            for c in range(3):
+                dx = h * v[i, c]  # half of the displacement: the trapezoid's 1/2
+                dq = h * omega[i, c]
+                wc += force[i, c] * dx + torque[i, c] * dq
+                we += fe[i, c] * dx
+                wd += fd[i, c] * dx + td[i, c] * dq
+        if track:
+            a0 = x[i, 0] - x0[i, 0]
+            a1 = x[i, 1] - x0[i, 1]
+            a2 = x[i, 2] - x0[i, 2]
+            d2 = max(d2, a0 * a0 + a1 * a1 + a2 * a2)
         for c in range(3):
-            prev[i, c] = force[i, c]
-            prev[i, 3 + c] = torque[i, c]
-            prev[i, 6 + c] = fe[i, c]
-            prev[i, 9 + c] = fd[i, c]
-            prev[i, 12 + c] = td[i, c]
             force[i, c] = torque[i, c] = fe[i, c] = fd[i, c] = td[i, c] = 0.0
+        hit[i] = 0
+    return wc, we, wd, d2
 
 
 @njit(cache=True)
-def _kick(v, omega, force, torque, fe, fd, td, prev, mass, inertia, kind, g, h):
-    """Second half-kick of FREE particles, after booking the work of each force class over
-    the step's displacement dt v (v = the half-step velocity, what the drift used), by the
-    trapezoidal rule: (F_old + F_new)/2 . dx. Returns the work [J] of all contact forces,
-    of their conservative normal parts, of their damping parts, and of gravity.
+def _kick(v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, hit):
+    """Second half-kick of FREE particles, after booking the new forces' half of the
+    trapezoidal work over the step's displacement dt v (v = the half-step velocity, what
+    the drift used; the drift booked the old forces' half, (F_old + F_new)/2 . dx in all).
+    Returns the work [J] of this half of all contact forces, of their conservative normal
+    parts, of their damping parts, and the work of gravity over the step.
 
     With K~ = K - sum h^2/(2m) |F_tot|^2 - h^2/(2I) |T|^2 (h = dt/2) velocity Verlet gives
     exactly K~_new - K~_old = sum (F_old + F_new)/2 . dx + (T_old + T_new)/2 . dtheta."""
@@ -71,16 +99,103 @@ def _kick(v, omega, force, torque, fe, fd, td, prev, mass, inertia, kind, g, h):
     for i in range(v.shape[0]):
         if kind[i] != 0:
             continue
+        if hit[i] == 0:
+            for c in range(3):
+                wg += 2.0 * mass[i] * g[c] * (h * v[i, c])
+                v[i, c] += h * g[c]
+            continue
         for c in range(3):
-            dx = h * v[i, c]  # half of the displacement: the trapezoid's 1/2
+            dx = h * v[i, c]
             dq = h * omega[i, c]
-            wc += (prev[i, c] + force[i, c]) * dx + (prev[i, 3 + c] + torque[i, c]) * dq
-            we += (prev[i, 6 + c] + fe[i, c]) * dx
-            wd += (prev[i, 9 + c] + fd[i, c]) * dx + (prev[i, 12 + c] + td[i, c]) * dq
+            wc += force[i, c] * dx + torque[i, c] * dq
+            we += fe[i, c] * dx
+            wd += fd[i, c] * dx + td[i, c] * dq
             wg += 2.0 * mass[i] * g[c] * dx
             v[i, c] += h * (force[i, c] / mass[i] + g[c])
             omega[i, c] += h * torque[i, c] / inertia[i]
     return wc, we, wd, wg
+
+
+@njit(cache=True)
+def _kick_drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, dt, per,
+                lg, org, x0, hit, res):
+    """`_kick` of one step and `_drift` of the next in one pass over the particles (the
+    same arithmetic in the same order: the same bits as the two kernels in turn), reading
+    and clearing only the flagged force rows. res (7,) receives the kick's four works, then
+    the drift's three; returns the drift's largest squared displacement [m^2]."""
+    kc = 0.0
+    ke = 0.0
+    kd = 0.0
+    kg = 0.0
+    wc = 0.0
+    we = 0.0
+    wd = 0.0
+    d2 = 0.0
+    track = x0.shape[0] == x.shape[0]
+    for i in range(v.shape[0]):
+        if hit[i] == 0:
+            if kind[i] == 0:
+                for c in range(3):
+                    kg += 2.0 * mass[i] * g[c] * (h * v[i, c])
+                    v[i, c] += h * g[c]
+                for c in range(3):
+                    v[i, c] += h * g[c]
+                if per:
+                    ax = x[i, 0] - org[0]
+                    ay = x[i, 1] - org[1]
+                    az = x[i, 2] - org[2]
+                    for c in range(3):
+                        x[i, c] += dt * (v[i, c] + lg[c, 0] * ax + lg[c, 1] * ay
+                                         + lg[c, 2] * az)
+                else:
+                    for c in range(3):
+                        x[i, c] += dt * v[i, c]
+        else:
+            if kind[i] == 0:
+                for c in range(3):  # the kick
+                    dx = h * v[i, c]
+                    dq = h * omega[i, c]
+                    kc += force[i, c] * dx + torque[i, c] * dq
+                    ke += fe[i, c] * dx
+                    kd += fd[i, c] * dx + td[i, c] * dq
+                    kg += 2.0 * mass[i] * g[c] * dx
+                    v[i, c] += h * (force[i, c] / mass[i] + g[c])
+                    omega[i, c] += h * torque[i, c] / inertia[i]
+                for c in range(3):  # the next drift
+                    v[i, c] += h * (force[i, c] / mass[i] + g[c])
+                    omega[i, c] += h * torque[i, c] / inertia[i]
+                if per:
+                    ax = x[i, 0] - org[0]
+                    ay = x[i, 1] - org[1]
+                    az = x[i, 2] - org[2]
+                    for c in range(3):
+                        x[i, c] += dt * (v[i, c] + lg[c, 0] * ax + lg[c, 1] * ay
+                                         + lg[c, 2] * az)
+                else:
+                    for c in range(3):
+                        x[i, c] += dt * v[i, c]
+                for c in range(3):
+                    dx = h * v[i, c]
+                    dq = h * omega[i, c]
+                    wc += force[i, c] * dx + torque[i, c] * dq
+                    we += fe[i, c] * dx
+                    wd += fd[i, c] * dx + td[i, c] * dq
+            for c in range(3):
+                force[i, c] = torque[i, c] = fe[i, c] = fd[i, c] = td[i, c] = 0.0
+            hit[i] = 0
+        if track:
+            a0 = x[i, 0] - x0[i, 0]
+            a1 = x[i, 1] - x0[i, 1]
+            a2 = x[i, 2] - x0[i, 2]
+            d2 = max(d2, a0 * a0 + a1 * a1 + a2 * a2)
+    res[0] = kc
+    res[1] = ke
+    res[2] = kd
+    res[3] = kg
+    res[4] = wc
+    res[5] = we
+    res[6] = wd
+    return d2
 
 
 @njit(cache=True)
@@ -162,7 +277,7 @@ class Simulation:
         n = particles.n
         self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0)
         self._fe, self._fd, self._td = (np.zeros((n, 3)) for _ in range(3))
-        self._prev = np.zeros((n, 15))  # force, torque, fe, fd, td of the last evaluation
+        self._hit = np.zeros(n, np.int8)  # particles with a contact in the last force pass
         self._wf = np.zeros((len(self.walls), 9))  # wall resultants: total, fe, fd [N]
         self._out = np.empty((0, NOUT))
         self._zeroed = False
@@ -176,11 +291,12 @@ class Simulation:
         self._check()
 
     # ---------------------------------------------------------------- forces
-    def _evaluate(self, update_history: bool):
+    def _evaluate(self, update_history: bool, disp2=None):
         """Contact forces now into p.force/p.torque, the private class arrays and the wall
-        resultants. Returns (elastic energy, tangential spring energy) [J]."""
+        resultants. Returns (elastic energy, tangential spring energy) [J]. disp2: the
+        largest squared displacement since the neighbour build if already known (drift)."""
         p, nl, w = self.p, self.nl, self.walls
-        if nl.needs_rebuild(p.x, w.point, self.cell):
+        if nl.needs_rebuild(p.x, w.point, self.cell, disp2):
             nl.build(p.x, p.radius, w.point, w.normal, self.cell)
             self._check_domain()
         h = [nl.hist, nl.slip, nl.etan, nl.whist, nl.wslip, nl.wetan]
@@ -190,16 +306,18 @@ class Simulation:
         if not self._zeroed:
             for a in acc:
                 a[:] = 0.0
+            self._hit[:] = 0
         self._zeroed = False
         m = max(len(nl.pi), len(nl.wi), 1)
         if self._out.shape[0] < m:
             self._out = np.empty((int(1.2 * m) + 16, NOUT))
         cell = NO_CELL if self.cell is None else self.cell.as_kernel_args(nl.img)
         e1, s1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
-                             self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell)
+                             self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell,
+                             hit=self._hit)
         e2, s2 = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              w.point, w.normal, w.velocity, w.material, self.table, h[3],
-                             h[4], h[5], self.dt, self._out, *acc, self._wf)
+                             h[4], h[5], self.dt, self._out, *acc, self._wf, hit=self._hit)
         w.force[:] = self._wf[:, :3]
         return e1 + e2, s1 + s2
 
@@ -228,23 +346,45 @@ class Simulation:
 
     # ---------------------------------------------------------------- stepping
     def step(self, n: int = 1):
-        """Advance n steps of dt (velocity Verlet), with blow-up and domain checks."""
-        p, dt, led, cell = self.p, self.dt, self._led, self.cell
+        """Advance n steps of dt (velocity Verlet), with blow-up and domain checks.
+
+        Between two steps of one call (unless a check falls in between) the second
+        half-kick and the next drift run as one pass over the particles (`_kick_drift`:
+        the same bits as `_kick` then `_drift`)."""
+        p, dt, cell, nl = self.p, self.dt, self.cell, self.nl
         h = 0.5 * dt
         per, lg, org = (0, _NO_L, _NO_O) if cell is None else \
             (1, cell.velocity_gradient, cell.origin)
-        args = (p.force, p.torque, self._fe, self._fd, self._td, self._prev, p.mass,
-                p.inertia, p.kind, self.gravity, h)
-        for _ in range(int(n)):
-            _drift(p.x, p.v, p.omega, *args[:-1], h, dt, per, lg, org)
+        acc = (p.force, p.torque, self._fe, self._fd, self._td)
+        prm = (p.mass, p.inertia, p.kind, self.gravity, h)
+        ghosts = len(self._ghosts) > 0
+        res = np.empty(7)
+        n = int(n)
+        pending = None  # (works of the old forces, largest squared displacement) of a drift
+        gprev = None  # ghost rows of the forces the drift cleared
+        for s in range(n):
+            if pending is None:
+                gprev = self._ghost_rows() if ghosts else None
+                pending = _drift(p.x, p.v, p.omega, *acc, *prm, dt, per, lg, org,
+                                 self._x0_tracked(), self._hit)
+            wc0, we0, wd0, d2 = pending
             self.walls.advance(dt)
             if cell is not None:
                 cell.advance(dt)
             self._zeroed = True  # the drift cleared the force arrays
             self._wf_prev[:] = self._wf
-            e, es = self._evaluate(True)
-            wc, we, wd, wg = _kick(p.v, p.omega, *args)
-            self._book(wc, we, wd, wg, e, es)
+            e, es = self._evaluate(True, d2 if cell is None else None)
+            gnow = self._ghost_rows() if ghosts else None
+            if s == n - 1 or (self.nsteps + 1) % self.check_every == 0:
+                wc1, we1, wd1, wg = _kick(p.v, p.omega, *acc, *prm, self._hit)
+                pending = None
+            else:
+                d2 = _kick_drift(p.x, p.v, p.omega, *acc, *prm, dt, per, lg, org,
+                                 self._x0_tracked(), self._hit, res)
+                wc1, we1, wd1, wg = res[0], res[1], res[2], res[3]
+                pending = (res[4], res[5], res[6], d2)
+            self._book(wc0 + wc1, we0 + we1, wd0 + wd1, wg, e, es, gprev, gnow)
+            gprev = gnow
             self.time += dt
             self.nsteps += 1
             if self.nsteps % self.check_every == 0:
@@ -252,23 +392,37 @@ class Simulation:
         if self.nsteps % self.check_every:
             self._check()
 
-    def _book(self, wc, we, wd, wg, e, es):
+    def _x0_tracked(self):
+        """Build positions of the neighbour list for the drift to measure displacements
+        from (empty: not measured, in a periodic cell or before the first build)."""
+        x0 = self.nl._x0
+        if self.cell is not None or x0 is None or x0.shape != self.p.x.shape:
+            return _EMPTY
+        return x0
+
+    def _ghost_rows(self):
+        """(ng, 15) force, torque, fe, fd, td of the GHOST particles now."""
+        g, p = self._ghosts, self.p
+        return np.hstack([p.force[g], p.torque[g], self._fe[g], self._fd[g], self._td[g]])
+
+    def _book(self, wc, we, wd, wg, e, es, gprev, gnow):
         """Energy ledger of one step, every term by the trapezoidal rule over the actual
-        displacements: free particles (from the kick), ghosts and walls (positions at the
-        two force evaluations). Contact work that is neither conservative normal work nor
-        spring energy is dissipated; the damping part is the work of the dashpots."""
+        displacements: free particles (from the drift and the kick), ghosts (their force
+        rows ``gprev`` at the drift and ``gnow`` after the force pass) and walls (positions
+        at the two force evaluations). Contact work that is neither conservative normal work
+        nor spring energy is dissipated; the damping part is the work of the dashpots."""
         led, p, g = self._led, self.p, self._ghosts
         (xg0, wp0), (xg1, wp1) = self._at, self._positions()
         self._at = (xg1, wp1)
         wgh = wge = wgd = 0.0  # work of the contacts on the ghosts (all, fe, fd)
         if len(g):
             dx, dq = xg1 - xg0, self.dt * p.omega[g]
-            prev = self._prev[g]
-            wgh = _trapezoid(prev[:, 0:3], p.force[g], dx) \
-                + _trapezoid(prev[:, 3:6], p.torque[g], dq)
-            wge = _trapezoid(prev[:, 6:9], self._fe[g], dx)
-            wgd = _trapezoid(prev[:, 9:12], self._fd[g], dx) \
-                + _trapezoid(prev[:, 12:15], self._td[g], dq)
+            prev = gprev
+            wgh = _trapezoid(prev[:, 0:3], gnow[:, 0:3], dx) \
+                + _trapezoid(prev[:, 3:6], gnow[:, 3:6], dq)
+            wge = _trapezoid(prev[:, 6:9], gnow[:, 6:9], dx)
+            wgd = _trapezoid(prev[:, 9:12], gnow[:, 9:12], dx) \
+                + _trapezoid(prev[:, 12:15], gnow[:, 12:15], dq)
         www = wwe = wwd = 0.0  # work of the contacts on the walls (all, fe, fd)
         if len(self.walls):
             www, wwe, wwd = _wall_work(self._wf_prev, self._wf, wp0, wp1)

@@ -9,6 +9,8 @@ it, first counting, then filling (both ``prange`` over particles, deterministic 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
@@ -272,6 +274,16 @@ def _max_disp2(x, x0):
     return d2
 
 
+def _max_wall_disp(wp, wp0) -> float:
+    """Largest displacement [m] of a wall point since the build (plain Python: a handful
+    of walls, cheaper than numpy's per-call overhead). Same value as the numpy form."""
+    d2 = 0.0
+    for a, b in zip(wp.tolist(), wp0.tolist(), strict=True):
+        q = (a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2
+        d2 = max(d2, q)
+    return math.sqrt(d2)
+
+
 class NeighbourList:
     """Verlet list of particle pairs and particle-wall pairs with their contact history.
 
@@ -296,16 +308,18 @@ class NeighbourList:
         self._h0 = None
         self._cut = 0.0
 
-    def needs_rebuild(self, x, wall_p, cell=None) -> bool:
+    def needs_rebuild(self, x, wall_p, cell=None, disp2=None) -> bool:
         """True once two particles (or a particle and a wall) may have closed the skin.
         In a deforming periodic cell the affine part of the motion is taken out of the
-        displacements and the stretch of the cell since the build is added instead."""
+        displacements and the stretch of the cell since the build is added instead.
+        disp2: the largest squared displacement [m^2] of x since the build if the caller
+        has it already (the integrator's drift measures it on the way)."""
         if self._x0 is None:
             return True
         if cell is None:
-            d = np.sqrt(_max_disp2(x, self._x0))
+            d = math.sqrt(_max_disp2(x, self._x0) if disp2 is None else disp2)
             if wall_p.shape[0]:
-                d += np.sqrt(((wall_p - self._wp0) ** 2).sum(axis=1).max())
+                d += _max_wall_disp(wall_p, self._wp0)
             return d > 0.5 * self.skin
         m = cell.h @ np.linalg.inv(self._h0)
         d = np.sqrt(_max_disp2(x - cell.origin, (self._x0 - cell.origin) @ m.T))
