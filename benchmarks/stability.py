@@ -1,10 +1,11 @@
 """Stability map of the coupled cone penetration.
 
 Pushes the 2D penetration scene (reduced: short settle, 1.5 cm push) while one parameter at
-a time departs from the default: cone velocity, contact stiffness (the grains' stiffness
-against the continuum derived from them is kept consistent, so this is a time-scale
-contrast), DE sub-steps per FE step (the FE step), the relaxation of the exchanged values,
-and the overlap width. Each run either finishes, or stops with the message the user would
+a time departs from the default: cone velocity, DE sub-steps per FE step (the FE step),
+the relaxation of the exchanged values, the overlap (handshake) width, the DEM time-step
+factor (x the default step; 20 reaches the critical step of the linear law) and the
+stiffness contrast (the continuum's constants x a factor against those derived from the
+grains). Each run either finishes, or stops with the message the user would
 see and its last good state written (``run_penetration`` catches the divergence). Writes
 ``results.json`` and a table ``stability.md``; also checks that no finished run returned
 non-finite or absurd tip resistance (garbage instead of an error).
@@ -37,19 +38,31 @@ comm = MPI.COMM_WORLD
 
 base = dict(settle_time=0.08, depth=0.008 if SHORT else 0.015, chamber_width=0.2, chamber_depth=0.12,
             radius=2e-3, element_size_far=0.03)
+# each sweep is pushed past where the run stops (defaults: velocity 0.2 m/s, 50 sub-steps,
+# relaxation 0.3, handshake 2 elements, dt_factor 1 = 0.05 of the linear law's critical step,
+# continuum_stiffness 1 = the constants derived from the grains)
 SWEEPS = {
-    "velocity": [0.2, 2.0] if SHORT else [0.1, 0.5, 2.0, 8.0],
-    "substeps": [50, 400] if SHORT else [10, 50, 200, 800],
-    "relaxation": [0.3, 1.0] if SHORT else [0.1, 0.3, 0.6, 1.0],
-    "handshake": [1.0] if SHORT else [0.5, 1.0, 2.0],
+    "velocity": [0.2, 2.0] if SHORT else [0.1, 0.5, 1.0, 2.0, 3.0, 4.0, 8.0],
+    "substeps": [50, 400] if SHORT else [2, 5, 10, 50, 200, 800],
+    "relaxation": [0.3, 1.0] if SHORT else [0.1, 0.3, 0.6, 0.8, 1.0],
+    "handshake": [1.0] if SHORT else [0.25, 0.5, 1.0, 2.0],
+    "dt_factor": [4.0] if SHORT else [2.0, 5.0, 10.0, 15.0, 20.0, 25.0, 40.0],
+    "continuum_stiffness": [10.0] if SHORT else [0.01, 0.1, 10.0, 100.0, 1000.0],
 }
 rows = []
 for name, values in SWEEPS.items():
     for value in values:
-        prm = PenetrationParameters(**base, **{name: value})
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
             out = comm.bcast(tmp, root=0)
+            try:
+                prm = PenetrationParameters(**base, **{name: value})
+            except ValueError as err:  # refused before anything is computed
+                rows.append({"parameter": name, "value": value, "status": "refused",
+                             "message": str(err)[:300], "time_s": time.perf_counter() - t0})
+                if comm.rank == 0:
+                    print(f"{name} = {value}: refused {rows[-1]['message'][:120]}", flush=True)
+                continue
             try:
                 res = run_penetration(prm, out, comm, frames=1, fields=False, particles=False, png=False,
                                       progress=False, log=lambda m: None)
@@ -60,7 +73,7 @@ for name, values in SWEEPS.items():
             except RuntimeError as err:
                 last = Path(out) / "last_good"
                 row = {"parameter": name, "value": value, "status": "stopped",
-                       "message": str(err).split("; the last state")[0][:300],
+                       "message": str(err).split("; the ")[0][:300],
                        "last_state_written": last.exists()}
         row["time_s"] = time.perf_counter() - t0
         rows.append(row)
@@ -70,8 +83,18 @@ for name, values in SWEEPS.items():
 if comm.rank == 0:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps({"base": base, "short": SHORT, "runs": rows}, indent=2))
-    lines = ["| parameter | value | outcome | message |", "| --- | --- | --- | --- |"]
-    lines += [f"| {r['parameter']} | {r['value']} | {r['status']} | {r['message'][:100]} |" for r in rows]
+    lines = ["| parameter | value | outcome | max q_c [kPa] | time [s] | message |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| {r['parameter']} | {r['value']} | {r['status']} | "
+              f"{r['max_q_c'] / 1e3 if 'max_q_c' in r else float('nan'):.3g} | {r['time_s']:.1f} | "
+              f"{r['message'][:100]} |" for r in rows]
+    # the stable region: the range of values that finished, per parameter (others at default)
+    lines += ["", "| parameter | finished for | stopped or refused for |", "| --- | --- | --- |"]
+    for name in SWEEPS:
+        ok = [r["value"] for r in rows if r["parameter"] == name and r["status"] == "finished"]
+        bad = [r["value"] for r in rows if r["parameter"] == name and r["status"] != "finished"]
+        span = f"{min(ok):g} to {max(ok):g}" if ok else "none"
+        lines.append(f"| {name} | {span} | {', '.join(f'{v:g}' for v in bad) or 'none'} |")
     (args.out / "stability.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     assert not any(r["status"] == "GARBAGE" for r in rows), "a run returned garbage without an error"

@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
@@ -119,12 +119,17 @@ class PenetrationParameters:
     # Hertz-Mindlin spheres (3D): quartz E = 2.9e10 Pa (seed 002 Table 1) scaled by 1e-3, so
     # that the explicit step is ~30x longer; contact stiffness, and q_c with it, scale down
     youngs_modulus: float = 2.9e7
+    # stability studies (benchmarks/stability.py): the DEM step times dt_factor (past the
+    # critical step above 1 / safety: 20 for the 2D linear law, 5 in 3D) and the continuum's
+    # constants times continuum_stiffness (1: consistent with the grains)
+    dt_factor: float = 1.0
+    continuum_stiffness: float = 1.0
 
     def __post_init__(self):
         for name in ("chamber_width", "chamber_depth", "window_half_width", "window_depth",
                      "ghost_width", "handshake", "element_size_window", "element_size_far",
                      "radius", "kn", "density", "cone_radius", "velocity", "depth", "settle_time",
-                     "youngs_modulus"):
+                     "youngs_modulus", "dt_factor", "continuum_stiffness"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be > 0, got {v!r}")
@@ -146,6 +151,13 @@ class PenetrationParameters:
                              f"(chamber_width = {self.chamber_width} m is too small)")
         if not 0 <= self.jitter < 0.5:
             raise ValueError(f"jitter must lie in [0, 0.5), got {self.jitter!r}")
+        from dem.timestep import DEFAULT_SAFETY
+
+        law = "linear" if self.dim == 2 else "hertz_mindlin"
+        if self.dt_factor * DEFAULT_SAFETY[law] > 1.0:
+            raise ValueError(f"dt_factor = {self.dt_factor} puts the DEM step above the critical "
+                             f"step of the {law} law (the default is {DEFAULT_SAFETY[law]} of it: "
+                             f"dt_factor <= {1 / DEFAULT_SAFETY[law]:g})")
         if self.substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {self.substeps!r}")
 
@@ -186,6 +198,18 @@ def dem_time_step(prm: PenetrationParameters, grain_radius: np.ndarray) -> float
 
     return DEFAULT_SAFETY["hertz_mindlin"] * rayleigh_dt(grain_radius, prm.youngs_modulus,
                                                          prm.nu, prm.density)
+
+
+def check_push(prm: PenetrationParameters, dt: float) -> None:
+    """The penetrator must move a small fraction of a grain radius per DEM step, or contacts
+    are crossed in a step or two and the forces are garbage, not an instability."""
+    per_step = prm.velocity * dt
+    if per_step > 0.05 * prm.radius:
+        raise ValueError(f"velocity = {prm.velocity} m/s moves the penetrator {per_step:.3g} m per "
+                         f"DEM step (dt = {dt:.3g} s), more than 0.05 grain radius "
+                         f"({0.05 * prm.radius:.3g} m): impacts at that speed overlap grains by "
+                         f"a sizeable part of their radius; lower the velocity (or dt_factor) to at "
+                         f"most {0.05 * prm.radius / dt:.3g} m/s")
 
 
 def _cone_and_material(prm, top):
@@ -301,6 +325,7 @@ class DemPenetration:
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
         self.sim = Simulation(p, material, walls=walls, gravity=_gravity(prm),
                               dt=dem_time_step(prm, radius), allow_overlap=True)
+        self.sim.dt *= prm.dt_factor
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
         t0 = time.perf_counter()
@@ -310,6 +335,7 @@ class DemPenetration:
 
     def run(self, progress=None):
         prm, sim = self.prm, self.sim
+        check_push(prm, sim.dt)
         p = sim.p
         down = np.eye(3)[VERTICAL[prm.dim]]
         block = prm.substeps * sim.dt
@@ -344,6 +370,16 @@ class CoupledPenetration:
     """
 
     def __init__(self, prm: PenetrationParameters, comm, log=print, checkpoint=None):
+        try:
+            self._build(prm, comm, log, checkpoint)
+        except Exception as err:
+            # a set-up failure after the grains exist hands their state to the caller to keep
+            sim = getattr(self, "sim", None)
+            if sim is not None:
+                err.grains = sim.p.state_dict()
+            raise
+
+    def _build(self, prm: PenetrationParameters, comm, log, checkpoint):
         from meshes.penetration import build_chamber
 
         self.prm, self.comm, self.log = prm, comm, log
@@ -374,6 +410,7 @@ class CoupledPenetration:
         # the penetrator's spheres overlap each other by construction (a smooth rigid outline)
         self.sim = Simulation(p, self.material, gravity=_gravity(prm), dt=dem_time_step(prm, radius),
                               allow_overlap=True)
+        self.sim.dt *= prm.dt_factor
         # the clump's own (constant) internal forces, to subtract from the penetrator's resultant
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
@@ -391,6 +428,11 @@ class CoupledPenetration:
                 self._lower_penetrator(r_pen)
             self.x_ref = self.sim.p.x[:n].copy()
             self.material_fe, self.contact_stats = self._continuum_material()
+            if prm.continuum_stiffness != 1.0:
+                c = prm.continuum_stiffness
+                m = self.material_fe
+                self.material_fe = replace(m, lam=c * m.lam, mu=c * m.mu, kappa=c * m.kappa,
+                                           alpha=c * m.alpha, beta=c * m.beta, gamma=c * m.gamma)
             # the continuum reaches the highest settled grain centre (every grain inside the mesh)
             self.surface = float(self.x_ref[:, ax].max() + 1e-3 * prm.radius)
         else:
@@ -469,6 +511,10 @@ class CoupledPenetration:
         i, j = sim.contacts()
         grains = (i < n) & (j < n)
         i, j = i[grains], j[grains]
+        if len(i) == 0:
+            raise ValueError(f"settle_time = {prm.settle_time} s leaves a coordination number of 0 "
+                             "(no grain contacts): not a load-bearing packing to take the "
+                             "continuum's constants from; settle longer")
         x, r = self.x_ref, sim.p.radius[:n]
         delta = r[i] + r[j] - np.linalg.norm(x[j] - x[i], axis=1)
         a = np.sqrt(r[i] * r[j] / (r[i] + r[j]) * delta)
@@ -543,6 +589,7 @@ class CoupledPenetration:
         """Push to ``prm.depth`` (or ``steps`` more FE steps), continuing from the current
         state; returns the history of all steps so far."""
         prm, sim, iface, st = self.prm, self.sim, self.interface, self.stepper
+        check_push(prm, sim.dt)
         p, dim, ax = sim.p, prm.dim, VERTICAL[prm.dim]
         stop = self.n_steps if steps is None else min(self.n_steps, len(self.history) + steps)
         down = np.eye(3)[ax]

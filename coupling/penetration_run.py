@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -42,7 +43,21 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
         out.mkdir(parents=True, exist_ok=True)
     comm.barrier()
     t0 = time.perf_counter()
-    cpt = CoupledPenetration(prm, comm, log=log, checkpoint=out / "checkpoint" if restart else None)
+    try:
+        cpt = CoupledPenetration(prm, comm, log=log, checkpoint=out / "checkpoint" if restart else None)
+    except (BlowUpError, DemError, FloatingPointError, ValueError) as err:
+        # failed while settling or deriving the continuum: keep the grains' last good state
+        where = out / "last_good"
+        path, grains = getattr(err, "path", None), getattr(err, "grains", None)
+        kept = bool(path and Path(path).exists()) or grains is not None
+        if comm.rank == 0 and kept:
+            where.mkdir(parents=True, exist_ok=True)
+            if path and Path(path).exists():  # a blow-up: the state before it, not the NaNs
+                shutil.move(path, where / "grains.npz")
+            else:
+                save_state(where / "grains.npz", **grains)
+        raise RuntimeError(f"penetration set-up failed: {err}"
+                           + (f"; the grains' last state is in {where}" if kept else "")) from err
     t_setup = time.perf_counter() - t0
     start = len(cpt.history)
     m = cpt.material_fe

@@ -84,3 +84,56 @@ def test_cone_meets_the_grains(cone):
 def test_pile_needs_3d():
     with pytest.raises(ValueError, match="shape = 'pile' needs dim = 3"):
         PenetrationParameters(shape="pile")
+
+
+# the reduced 2D scene of benchmarks/stability.py
+SMALL_2D = dict(settle_time=0.08, depth=0.008, chamber_width=0.2, chamber_depth=0.12, radius=2e-3,
+                element_size_far=0.03)
+
+
+def test_too_fast_a_push_stops_with_its_last_state(tmp_path):
+    """A cone moving more than 0.05 grain radius per DEM step is refused by name, and the
+    settled state is kept (benchmarks/stability.py maps where that happens)."""
+    from coupling.penetration_run import run_penetration
+
+    comm = MPI.COMM_WORLD
+    out = comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0)
+    prm = PenetrationParameters(**SMALL_2D, velocity=10.0)
+    with pytest.raises(RuntimeError, match=r"velocity = 10.0 m/s moves the penetrator .* per DEM step"):
+        run_penetration(prm, out, comm, frames=1, fields=False, particles=False, png=False,
+                        progress=False, log=lambda m: None)
+    assert (tmp_path / "last_good" / "grains.npz").exists()
+
+
+def test_time_step_past_critical_is_refused():
+    with pytest.raises(ValueError, match=r"dt_factor = 40.0 puts the DEM step above the critical"):
+        PenetrationParameters(**SMALL_2D, dt_factor=40.0)
+    PenetrationParameters(**SMALL_2D, dt_factor=20.0)  # at the linear law's limit
+
+
+def test_failed_set_up_keeps_the_settled_grains(tmp_path):
+    """Too short a settle leaves no load-bearing packing: the set-up stops naming the key,
+    and the grains computed so far are written."""
+    from coupling.penetration_run import run_penetration
+
+    comm = MPI.COMM_WORLD
+    out = comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0)
+    prm = PenetrationParameters(**(TINY | {"settle_time": 1e-4}))
+    with pytest.raises(RuntimeError, match=r"set-up failed: settle_time = 0.0001 s leaves a coordination"):
+        run_penetration(prm, out, comm, frames=1, fields=False, particles=False, png=False,
+                        progress=False, log=lambda m: None)
+    if comm.rank == 0:
+        saved = np.load(tmp_path / "last_good" / "grains.npz")
+        assert np.isfinite(saved["x"]).all() and len(saved["x"]) > 100
+
+
+def test_continuum_stiffness_scales_the_derived_constants():
+    comm = MPI.COMM_WORLD
+    a = CoupledPenetration(PenetrationParameters(**SMALL_2D), comm, log=lambda m: None).material_fe
+    b = CoupledPenetration(PenetrationParameters(**SMALL_2D, continuum_stiffness=10.0), comm,
+                           log=lambda m: None).material_fe
+    for name in ("lam", "mu", "kappa", "alpha", "beta", "gamma"):
+        assert getattr(b, name) == pytest.approx(10.0 * getattr(a, name), rel=1e-12)
+    assert b.rho == a.rho
+    with pytest.raises(ValueError, match="continuum_stiffness must be > 0"):
+        PenetrationParameters(**SMALL_2D, continuum_stiffness=0.0)
