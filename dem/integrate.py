@@ -16,7 +16,7 @@ from numba import njit
 
 from dem.contact import ContactMaterial, pair_table
 from dem.errors import BlowUpError, DomainError, OverlapError
-from dem.forces import NO_CELL, NOUT, pair_forces, wall_forces
+from dem.forces import NO_CELL, NOUT, pair_forces, pair_layout, refresh_live, wall_forces
 from dem.neighbours import NeighbourList
 from dem.state import FREE, GHOST
 from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
@@ -278,6 +278,7 @@ class Simulation:
         self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0)
         self._fe, self._fd, self._td = (np.zeros((n, 3)) for _ in range(3))
         self._hit = np.zeros(n, np.int8)  # particles with a contact in the last force pass
+        self._lay = (None, None)  # ((pair arrays it was made from), dem.forces.pair_layout)
         self._wf = np.zeros((len(self.walls), 9))  # wall resultants: total, fe, fd [N]
         self._out = np.empty((0, NOUT))
         self._zeroed = False
@@ -291,16 +292,39 @@ class Simulation:
         self._check()
 
     # ---------------------------------------------------------------- forces
-    def _evaluate(self, update_history: bool, disp2=None):
+    def _layout(self, fresh: bool):
+        """`dem.forces.pair_layout` of the current pair list (None in a periodic cell or
+        if the list is not sorted by i). Rebuilt when the list or its history arrays are
+        new objects; with ``fresh`` its live flags are recomputed from the history (the
+        arrays may have been written between two calls of `step`)."""
+        nl = self.nl
+        key = self._lay[0]
+        if key is None or key[0] is not nl.pi or key[1] is not nl.hist or \
+                key[2] is not nl.slip or key[3] is not nl.etan:
+            lay = None
+            if self.cell is None and len(nl.pi) and (len(nl.pi) < 2
+                                                     or (nl.pi[1:] >= nl.pi[:-1]).all()):
+                lay = pair_layout(nl.pi, nl.pj, self.p.n, nl.hist, nl.slip, nl.etan)
+            self._lay = ((nl.pi, nl.hist, nl.slip, nl.etan), lay)
+        elif fresh and self._lay[1] is not None:
+            refresh_live(nl.hist, nl.slip, nl.etan, self._lay[1][2])
+        return self._lay[1]
+
+    def _evaluate(self, update_history: bool, disp2=None, fresh=True):
         """Contact forces now into p.force/p.torque, the private class arrays and the wall
         resultants. Returns (elastic energy, tangential spring energy) [J]. disp2: the
-        largest squared displacement since the neighbour build if already known (drift)."""
+        largest squared displacement since the neighbour build if already known (drift);
+        fresh: the contact history may have been changed from outside since the last
+        force pass (False only between two steps of one `step` call)."""
         p, nl, w = self.p, self.nl, self.walls
         if nl.needs_rebuild(p.x, w.point, self.cell, disp2):
             nl.build(p.x, p.radius, w.point, w.normal, self.cell)
             self._check_domain()
         h = [nl.hist, nl.slip, nl.etan, nl.whist, nl.wslip, nl.wetan]
-        if not update_history:
+        lay = None
+        if update_history:
+            lay = self._layout(fresh)
+        else:
             h = [a.copy() for a in h]
         acc = (p.force, p.torque, self._fe, self._fd, self._td)
         if not self._zeroed:
@@ -314,7 +338,7 @@ class Simulation:
         cell = NO_CELL if self.cell is None else self.cell.as_kernel_args(nl.img)
         e1, s1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell,
-                             hit=self._hit)
+                             hit=self._hit, layout=lay)
         e2, s2 = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              w.point, w.normal, w.velocity, w.material, self.table, h[3],
                              h[4], h[5], self.dt, self._out, *acc, self._wf, hit=self._hit)
@@ -373,7 +397,7 @@ class Simulation:
                 cell.advance(dt)
             self._zeroed = True  # the drift cleared the force arrays
             self._wf_prev[:] = self._wf
-            e, es = self._evaluate(True, d2 if cell is None else None)
+            e, es = self._evaluate(True, d2 if cell is None else None, s == 0)
             gnow = self._ghost_rows() if ghosts else None
             if s == n - 1 or (self.nsteps + 1) % self.check_every == 0:
                 wc1, we1, wd1, wg = _kick(p.v, p.omega, *acc, *prm, self._hit)
