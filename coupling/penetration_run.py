@@ -159,15 +159,21 @@ def _picture(cpt, path):
     prm, p = cpt.prm, cpt.sim.p
     W, s = 0.5 * prm.chamber_width, cpt.surface
     low = s - min(0.12, prm.chamber_depth)
-    title = (f"|u| of the continuum; grains (red: ghosts, {prm.shape}), depth "
+    title = (f"displacement magnitude of the continuum [m]; grains (red: ghosts, {prm.shape}), depth "
              f"{cpt.depth * 100:.1f} cm")
     if prm.dim == 2:
         def overlay(plotter, warp):
             import pyvista
-            cloud = pyvista.PolyData(p.x.copy())
+            # disks at their true radius, lifted off the continuum's plane so both show
+            x = p.x.copy()
+            x[:, 2] = 1e-3 * prm.chamber_width
+            cloud = pyvista.PolyData(x)
+            cloud["radius"] = p.radius.copy()
             cloud["kind"] = p.kind.astype(float)
-            plotter.add_mesh(cloud, scalars="kind", cmap=["white", "red"], point_size=3,
-                             render_points_as_spheres=True, show_scalar_bar=False)
+            disks = cloud.glyph(scale="radius", orient=False,
+                                geom=pyvista.Disc(inner=0.0, outer=1.0, r_res=1, c_res=16))
+            plotter.add_mesh(disks, scalars="kind", cmap=["white", "red"], show_scalar_bar=False,
+                             show_edges=False)
 
         render_png(cpt.problem, path, "u_magnitude", warp=0, overlay=overlay,
                    box=(-W / 2, W / 2, low, s + 0.03), title=title)
