@@ -5,16 +5,18 @@ its integer id (``apply_law``: an integer switch, not a function argument, so nu
 cache works). Two drivers share the per-contact code:
 
 - rows: per-contact results go to rows of ``out`` in a ``prange`` loop, then a serial
-  scatter sums them onto particles in contact order (used from ``PARALLEL_MIN``
-  candidate pairs on when numba runs more than one thread, and whenever the caller wants
-  the rows);
+  scatter (or, over the compact layout, a parallel per-particle `_gather`) sums them
+  onto particles in contact order (used from ``PARALLEL_MIN`` candidate pairs on when
+  numba runs more than one thread, and whenever the caller wants the rows);
 - fused: one serial loop that resolves a contact into a scratch row and scatters it at
   once (no m x NOUT array streamed through memory twice).
 
 Most candidate pairs of a Verlet list are open: a sqrt-free pre-test
 (``d^2 > (r_i + r_j)^2 (1 + 1e-12)``, which implies delta <= 0 whatever the rounding)
 releases them before their kinematics and parameter row are touched; walls use the exact
-open test of `wall_kinematics` up front.
+open test of `wall_kinematics` up front. Without a cell the integrator passes a compact
+layout of the list (`pair_layout`: offsets per particle, int32 partners, live flags) so
+that an open candidate with no history costs a 4-byte index and one flag.
 
 Both add the same numbers in the same order, so results do not depend on the driver, the
 thread count or scheduling.
@@ -43,7 +45,12 @@ from dem.contact.kinematics import (pair_kinematics, periodic_pair_kinematics, p
 from dem.contact.linear import linear_force
 
 NOUT = 23
-PARALLEL_MIN = 4096
+PARALLEL_MIN = 1 << 62
+"""Candidate pairs from which, with more than one numba thread, the ``prange`` drivers run
+(rows, then `_gather` or `_scatter`). Off by default: on the project's 2-vCPU machine the
+serial fused loop was faster at 2 threads (settle scene, 10k and 50k particles: 18.0 vs
+14.3 and 18.5 vs 12.4 M particle-steps/s); set it (e.g. 4096) where threads pay off.
+Results are the same bits either way."""
 
 __all__ = ["NOUT", "PARALLEL_MIN", "apply_law", "pair_forces", "pair_layout", "refresh_live",
            "wall_forces"]
@@ -245,21 +252,30 @@ def _scatter(pi, pj, out, force, torque, fe, fd, td, hit):
 @njit(cache=True)
 def pair_layout(pi, pj, n, hist, slip, etan):
     """Compact view of a pair list sorted by (i, j) for the kernels: start (n + 1,) int64
-    (the pairs of i are start[i]:start[i + 1]), pj (m,) int32, and live (m,) int8, 0 only
-    where the contact history (hist, slip, etan) is all zero."""
+    (the pairs of i are start[i]:start[i + 1]), pj (m,) int32, live (m,) int8 (0 only
+    where the contact history hist, slip, etan is all zero), and the transpose: jstart
+    (n + 1,) int64, jrow (m,) int64 (the pairs (i, j) with j = p, ascending i, are
+    jrow[jstart[p]:jstart[p + 1]])."""
     m = pi.shape[0]
     start = np.zeros(n + 1, np.int64)
+    jstart = np.zeros(n + 1, np.int64)
     for k in range(m):
         start[pi[k] + 1] += 1
+        jstart[pj[k] + 1] += 1
     for i in range(n):
         start[i + 1] += start[i]
+        jstart[i + 1] += jstart[i]
     pj32 = np.empty(m, np.int32)
     live = np.empty(m, np.int8)
+    jrow = np.empty(m, np.int64)
+    fill = jstart[:-1].copy()
     for k in range(m):
         pj32[k] = pj[k]
         live[k] = 1 if (etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0
                         or hist[k, 1] != 0.0 or hist[k, 2] != 0.0) else 0
-    return start, pj32, live
+        jrow[fill[pj[k]]] = k
+        fill[pj[k]] += 1
+    return start, pj32, live, jstart, jrow
 
 
 @njit(cache=True)
@@ -317,7 +333,8 @@ def _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table, his
 def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist, slip,
                    etan, dt, out):
     """`_pair_rows` without a cell over the compact layout (``prange`` over particles i;
-    each contact belongs to one i, so no two threads write the same row)."""
+    each contact belongs to one i, so no two threads write the same row). Rows with
+    live[k] = 0 afterwards are open and left unwritten (`_gather` skips them)."""
     for i in prange(start.shape[0] - 1):
         xi0 = x[i, 0]
         xi1 = x[i, 1]
@@ -330,7 +347,6 @@ def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table
             dz = x[j, 2] - xi2
             rs = ri + radius[j]
             if dx * dx + dy * dy + dz * dz > rs * rs * _SURE_OPEN:
-                out[k, 18] = 0.0
                 if live[k]:
                     _release(k, hist, slip, etan)
                     live[k] = 0
@@ -342,6 +358,50 @@ def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table
                      omega[i, 2] - omega[j, 2], out[k])
 
 
+GATHER_CHUNK = 512
+"""Particles per task of `_gather` (fixed: its energy sums do not depend on threads)."""
+
+
+@njit(parallel=True, cache=True)
+def _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part):
+    """Parallel, deterministic form of `_scatter` over the compact layout: each particle p
+    sums its rows itself, first those where it is j (ascending i), then those where it is
+    i (ascending j): the order in which `_scatter` adds them, so the same bits whatever the
+    threads. part (nchunk, 2) receives the elastic and spring energies of the rows of the
+    particles of each chunk of GATHER_CHUNK (summed by the caller in chunk order)."""
+    n = start.shape[0] - 1
+    nchunk = part.shape[0]
+    for b in prange(nchunk):
+        e = 0.0
+        es = 0.0
+        for p in range(b * GATHER_CHUNK, min(n, (b + 1) * GATHER_CHUNK)):
+            for q in range(jstart[p], jstart[p + 1]):
+                k = jrow[q]
+                if live[k] == 0 or out[k, 18] == 0.0:
+                    continue
+                hit[p] = 1
+                for c in range(3):
+                    force[p, c] += out[k, c]
+                    torque[p, c] += out[k, 6 + c]
+                    fe[p, c] += out[k, 19 + c]
+                    fd[p, c] += out[k, 9 + c]
+                    td[p, c] += out[k, 15 + c]
+            for k in range(start[p], start[p + 1]):
+                if live[k] == 0 or out[k, 18] == 0.0:
+                    continue
+                hit[p] = 1
+                for c in range(3):
+                    force[p, c] -= out[k, c]
+                    torque[p, c] += out[k, 3 + c]
+                    fe[p, c] -= out[k, 19 + c]
+                    fd[p, c] -= out[k, 9 + c]
+                    td[p, c] += out[k, 12 + c]
+                e += out[k, 18]
+                es += out[k, 22]
+        part[b, 0] = e
+        part[b, 1] = es
+
+
 def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
                 out, force, torque, fe, fd, td, cell=NO_CELL, rows=False, hit=None,
                 layout=None):
@@ -350,8 +410,8 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
 
     pi, pj (m,) int64 candidate pairs; hist (m, 3) tangential springs [m]; slip (m,) int8;
     etan (m,) spring energies [J]; out (>= m, NOUT) rows (written if ``rows`` or from
-    ``PARALLEL_MIN`` contacts on with more than one numba thread; else only out[0] is used
-    as scratch); cell: (flag, h
+    ``PARALLEL_MIN`` candidate pairs on with more than one numba thread; else only out[0]
+    is used as scratch); cell: (flag, h
     (3, 3) [m], velocity gradient (3, 3) [1/s], image shifts (m, 3)) of a periodic cell.
     hit (n,) int8, optional: set to 1 for every particle that receives a contact.
     layout: `pair_layout` of (pi, pj) with live flags kept up to date by the kernels
@@ -369,11 +429,17 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
             _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
                        dt, per, h, lg, img, out)
         else:
-            _pair_rows_csr(*layout, x, v, omega, radius, mass, material, table, hist, slip,
-                           etan, dt, out)
+            start, pj32, live, jstart, jrow = layout
+            _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist,
+                           slip, etan, dt, out)
+            if not rows and hit.shape[0] == x.shape[0]:
+                part = np.empty(((x.shape[0] + GATHER_CHUNK - 1) // GATHER_CHUNK, 2))
+                _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part)
+                return float(part[:, 0].sum()), float(part[:, 1].sum())
+            out[np.flatnonzero(live == 0), 18] = 0.0  # open rows, as `_scatter` reads them
         return _scatter(pi, pj, out, force, torque, fe, fd, td, hit)
     if layout is not None:
-        return _pair_csr(*layout, x, v, omega, radius, mass, material, table, hist, slip,
+        return _pair_csr(*layout[:3], x, v, omega, radius, mass, material, table, hist, slip,
                          etan, dt, out[0], force, torque, fe, fd, td, hit)
     return _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
                        dt, per, h, lg, img, out[0], force, torque, fe, fd, td, hit)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from numba import njit
+from numba import get_num_threads, njit, prange
 
 from dem.contact import ContactMaterial, pair_table
 from dem.errors import BlowUpError, DomainError, OverlapError
@@ -117,12 +117,12 @@ def _kick(v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, hit):
 
 
 @njit(cache=True)
-def _kick_drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, dt, per,
-                lg, org, x0, hit, res):
-    """`_kick` of one step and `_drift` of the next in one pass over the particles (the
+def _kick_drift_range(lo, hi, x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g,
+                      h, dt, per, lg, org, x0, hit, res):
+    """`_kick` of one step and `_drift` of the next in one pass over particles lo:hi (the
     same arithmetic in the same order: the same bits as the two kernels in turn), reading
-    and clearing only the flagged force rows. res (7,) receives the kick's four works, then
-    the drift's three; returns the drift's largest squared displacement [m^2]."""
+    and clearing only the flagged force rows. res (8,) receives the kick's four works, the
+    drift's three and its largest squared displacement [m^2]."""
     kc = 0.0
     ke = 0.0
     kd = 0.0
@@ -132,7 +132,7 @@ def _kick_drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, 
     wd = 0.0
     d2 = 0.0
     track = x0.shape[0] == x.shape[0]
-    for i in range(v.shape[0]):
+    for i in range(lo, hi):
         if hit[i] == 0:
             if kind[i] == 0:
                 for c in range(3):
@@ -195,7 +195,44 @@ def _kick_drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, 
     res[4] = wc
     res[5] = we
     res[6] = wd
-    return d2
+    res[7] = d2
+
+
+KD_CHUNK = 2048
+"""Particles per task of `_kick_drift_par` (fixed: its sums do not depend on threads)."""
+KD_PARALLEL_MIN = 1 << 62
+"""Particles from which, with more than one numba thread, `_kick_drift_par` runs. Off by
+default: slower than the serial pass on the project's 2-vCPU machine (memory-bound; see
+`dem.forces.PARALLEL_MIN`)."""
+
+
+@njit(cache=True)
+def _kick_drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, dt, per,
+                lg, org, x0, hit, res):
+    """`_kick_drift_range` over all particles; res (8,)."""
+    _kick_drift_range(0, x.shape[0], x, v, omega, force, torque, fe, fd, td, mass, inertia,
+                      kind, g, h, dt, per, lg, org, x0, hit, res)
+
+
+@njit(parallel=True, cache=True)
+def _kick_drift_par(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, dt,
+                    per, lg, org, x0, hit, res):
+    """`_kick_drift` in chunks of KD_CHUNK particles over the threads; the chunks' sums are
+    added in chunk order (the same for any thread count; the trajectory is the same bits as
+    the serial kernel, the ledger sums differ from it by round-off)."""
+    n = x.shape[0]
+    nb = (n + KD_CHUNK - 1) // KD_CHUNK
+    part = np.zeros((nb, 8))
+    for b in prange(nb):
+        _kick_drift_range(b * KD_CHUNK, min(n, (b + 1) * KD_CHUNK), x, v, omega, force,
+                          torque, fe, fd, td, mass, inertia, kind, g, h, dt, per, lg, org, x0,
+                          hit, part[b])
+    for q in range(8):
+        res[q] = 0.0
+    for b in range(nb):
+        for q in range(7):
+            res[q] += part[b, q]
+        res[7] = max(res[7], part[b, 7])
 
 
 @njit(cache=True)
@@ -382,7 +419,8 @@ class Simulation:
         acc = (p.force, p.torque, self._fe, self._fd, self._td)
         prm = (p.mass, p.inertia, p.kind, self.gravity, h)
         ghosts = len(self._ghosts) > 0
-        res = np.empty(7)
+        res = np.empty(8)
+        kd = _kick_drift_par if get_num_threads() > 1 and p.n >= KD_PARALLEL_MIN else _kick_drift
         n = int(n)
         pending = None  # (works of the old forces, largest squared displacement) of a drift
         gprev = None  # ghost rows of the forces the drift cleared
@@ -403,10 +441,10 @@ class Simulation:
                 wc1, we1, wd1, wg = _kick(p.v, p.omega, *acc, *prm, self._hit)
                 pending = None
             else:
-                d2 = _kick_drift(p.x, p.v, p.omega, *acc, *prm, dt, per, lg, org,
-                                 self._x0_tracked(), self._hit, res)
+                kd(p.x, p.v, p.omega, *acc, *prm, dt, per, lg, org, self._x0_tracked(),
+                   self._hit, res)
                 wc1, we1, wd1, wg = res[0], res[1], res[2], res[3]
-                pending = (res[4], res[5], res[6], d2)
+                pending = (res[4], res[5], res[6], res[7])
             self._book(wc0 + wc1, we0 + we1, wd0 + wd1, wg, e, es, gprev, gnow)
             gprev = gnow
             self.time += dt
