@@ -105,15 +105,16 @@ def _contact(k, kin, prm, hist, slip, etan, dt, wrx, wry, wrz, out):
     _cross_arm(out, 3, nx, ny, nz, ftx, fty, ftz, ai, aj)
     _cross_arm(out, 12, nx, ny, nz, fdx, fdy, fdz, ai, aj)
     mur = prm[P_MUR]
-    w = math.sqrt(wrx * wrx + wry * wry + wrz * wrz)
-    if mur > 0.0 and w > 0.0:
-        mr = mur * abs(fn) * reff / w  # constant rolling torque against the relative spin
-        out[3] -= mr * wrx
-        out[4] -= mr * wry
-        out[5] -= mr * wrz
-        out[6] += mr * wrx
-        out[7] += mr * wry
-        out[8] += mr * wrz
+    if mur > 0.0:
+        w = math.sqrt(wrx * wrx + wry * wry + wrz * wrz)
+        if w > 0.0:
+            mr = mur * abs(fn) * reff / w  # constant rolling torque against the relative spin
+            out[3] -= mr * wrx
+            out[4] -= mr * wry
+            out[5] -= mr * wrz
+            out[6] += mr * wrx
+            out[7] += mr * wry
+            out[8] += mr * wrz
     out[18] = e_n + e_t
     out[22] = e_t
     etan[k] = e_t

@@ -213,6 +213,26 @@ def build_periodic_pairs(x, radius, skin: float, h, dim: int = 3):
     return pi[o], pj[o], img[o]
 
 
+@njit(cache=True)
+def _sort_runs(pi, pj):
+    """Sort pj within each run of equal pi (pi ascending, runs short): the pair list
+    ordered by (i, j), as a global sort of the keys i n + j would order it."""
+    m = pi.shape[0]
+    a = 0
+    while a < m:
+        b = a + 1
+        while b < m and pi[b] == pi[a]:
+            b += 1
+        for q in range(a + 1, b):  # insertion sort of pj[a:b]
+            v = pj[q]
+            r = q - 1
+            while r >= a and pj[r] > v:
+                pj[r + 1] = pj[r]
+                r -= 1
+            pj[r + 1] = v
+        a = b
+
+
 def build_pairs(x, radius, skin: float):
     """Pairs (pi, pj) (m,) int64, i < j, with |x_j - x_i| < r_i + r_j + skin; sorted by
     (i, j). x (n, 3) [m], radius (n,) [m], skin [m] >= 0."""
@@ -228,9 +248,8 @@ def build_pairs(x, radius, skin: float):
         nc = np.maximum(np.floor(span / h).astype(np.int64) + 1, 1)
     kern = _pairs if n >= PAIRS_PARALLEL_MIN else _pairs_ser
     pi, pj = kern(x, radius, float(skin), lo, float(h), nc)
-    key = pi * n + pj
-    s = np.argsort(key, kind="stable")
-    return pi[s], pj[s]
+    _sort_runs(pi, pj)  # pi comes out ascending; j in cell order within each i
+    return pi, pj
 
 
 def brute_force_pairs(x, radius, skin: float):
@@ -250,13 +269,36 @@ def wall_candidates(x, radius, wall_p, wall_n, skin: float):
     return i.astype(np.int64), w.astype(np.int64)
 
 
+@njit(cache=True)
+def _merge_match(old_keys, new_keys, idx):
+    """idx[q] = position of new_keys[q] in old_keys or -1, by one merge walk (both strictly
+    ascending). Returns False (idx unusable) if new_keys is not strictly ascending."""
+    m = old_keys.shape[0]
+    a = 0
+    for q in range(new_keys.shape[0]):
+        k = new_keys[q]
+        if q and k <= new_keys[q - 1]:
+            return False
+        while a < m and old_keys[a] < k:
+            a += 1
+        idx[q] = a if a < m and old_keys[a] == k else -1
+    return True
+
+
 def carry_history(old_keys, new_keys, *arrays):
     """Per-contact arrays (first axis = contact) re-indexed from the sorted ``old_keys`` to
-    ``new_keys`` (searchsorted); new contacts get zeros."""
+    ``new_keys``; new contacts get zeros. (A merge walk when new_keys is ascending too,
+    else searchsorted: the same result.)"""
     out = [np.zeros((new_keys.shape[0],) + a.shape[1:], a.dtype) for a in arrays]
     if old_keys.shape[0] and new_keys.shape[0]:
-        idx = np.minimum(np.searchsorted(old_keys, new_keys), old_keys.shape[0] - 1)
-        hit = old_keys[idx] == new_keys
+        old_keys = np.ascontiguousarray(old_keys, np.int64)
+        new_keys = np.ascontiguousarray(new_keys, np.int64)
+        idx = np.empty(new_keys.shape[0], np.int64)
+        if _merge_match(old_keys, new_keys, idx):
+            hit = idx >= 0
+        else:
+            idx = np.minimum(np.searchsorted(old_keys, new_keys), old_keys.shape[0] - 1)
+            hit = old_keys[idx] == new_keys
         for a, b in zip(arrays, out, strict=True):
             b[hit] = a[idx[hit]]
     return out
