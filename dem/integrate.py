@@ -132,15 +132,30 @@ def _kick_drift_range(lo, hi, x, v, omega, force, torque, fe, fd, td, mass, iner
     we = 0.0
     wd = 0.0
     d2 = 0.0
+    s0 = s1 = s2 = 0.0  # momentum sum m v (half-step) for the work of gravity
+    hg0 = h * g[0]
+    hg1 = h * g[1]
+    hg2 = h * g[2]
     track = x0.shape[0] == x.shape[0]
     for i in range(lo, hi):
         if hit[i] == 0:
-            if kind[i] == 0:
-                for c in range(3):
-                    kg += 2.0 * mass[i] * g[c] * (h * v[i, c])
-                    v[i, c] += h * g[c]
-                for c in range(3):
-                    v[i, c] += h * g[c]
+            if kind[i] == 0:  # no contact: v += h (0/m + g) twice, to the bit
+                mi = mass[i]
+                u0 = v[i, 0]
+                u1 = v[i, 1]
+                u2 = v[i, 2]
+                s0 += mi * u0
+                s1 += mi * u1
+                s2 += mi * u2
+                u0 += hg0
+                u1 += hg1
+                u2 += hg2
+                u0 += hg0
+                u1 += hg1
+                u2 += hg2
+                v[i, 0] = u0
+                v[i, 1] = u1
+                v[i, 2] = u2
                 if per:
                     ax = x[i, 0] - org[0]
                     ay = x[i, 1] - org[1]
@@ -192,7 +207,7 @@ def _kick_drift_range(lo, hi, x, v, omega, force, torque, fe, fd, td, mass, iner
     res[0] = kc
     res[1] = ke
     res[2] = kd
-    res[3] = kg
+    res[3] = kg + 2.0 * h * (g[0] * s0 + g[1] * s1 + g[2] * s2)
     res[4] = wc
     res[5] = we
     res[6] = wd
