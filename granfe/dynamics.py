@@ -17,6 +17,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from granfe.forms import inertia_work, internal_work, kinetic_energy_density, strain, curvature, strain_energy_density
 from granfe.problem import MicropolarProblem
@@ -94,6 +95,7 @@ class GeneralizedAlpha:
         saved, problem.petsc_options = problem.petsc_options, options
         self._snes = problem.snes_problem(F, prefix or problem.prefix + "dyn_")
         problem.petsc_options = saved
+        self._affine = _AffineStep.build(self, F, L)
         vu, vphi = ufl.split(self.v)
         u, phi = ufl.split(w)
         self._kinetic = fem.form(kinetic_energy_density(vu, vphi, c) * problem.dx)
@@ -134,10 +136,17 @@ class GeneralizedAlpha:
         w.x.array[:] += dt * self.v.x.array + 0.5 * dt**2 * self.a.x.array
 
     def solve(self) -> int:
-        """Solve the current step for ``w`` (may be repeated, e.g. by a staggered coupling)."""
-        self._snes.solve()
+        """Solve the current step for ``w`` (may be repeated, e.g. by a staggered coupling).
+
+        The step's equation is linear (linear material, loads independent of ``w``): with a
+        direct solver it is one solve with the Jacobian factorised once (:class:`_AffineStep`),
+        else a SNES solve."""
+        what = f"dynamic step at t = {self.t + float(self.dt.value):.6g} s"
         try:
-            return self.problem.checked(self._snes, f"dynamic step at t = {self.t + float(self.dt.value):.6g} s")
+            if self._affine is not None:
+                return self.problem.checked_ksp(self._affine.solve(), what)
+            self._snes.solve()
+            return self.problem.checked(self._snes, what)
         except Exception:
             self.problem.w.x.array[:] = self.w_old.x.array
             raise
@@ -175,3 +184,135 @@ class GeneralizedAlpha:
                     fem.form(weight * strain_energy_density(strain(u, phi), curvature(phi), c) * dx))
             forms = self._weighted[key]
         return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in forms)
+
+
+def _values(constants) -> tuple:
+    return tuple(np.array(c.value, dtype=float).tobytes() for c in constants)
+
+
+class _AffineStep:
+    """The generalized-alpha step when its residual is affine in ``w``::
+
+        F(w) = M y1(w) + K y2(w) - L,   y1 = c_m (w - w_old - dt v) + c_a a,
+                                        y2 = (1 - alpha_f) w + alpha_f w_old,
+
+    with the mass matrix M, the stiffness K (both without Dirichlet conditions) and the
+    load vector L, and ``J = c_m M + (1 - alpha_f) K``. Newton's first iterate from any
+    ``w`` is then the solution: insert the Dirichlet values into ``w`` (this is the lifting),
+    evaluate F there by two matrix products, zero it on the Dirichlet rows, and subtract
+    ``J^-1 F`` (J with the Dirichlet rows and columns replaced by the identity, factorised
+    once). That is the SNES solve's result to round-off, without assembling the residual
+    form twice per step (the SNES evaluates it at the start and again to test convergence).
+
+    M, K and J are re-assembled (and J refactorised) when a constant of J (dt, moduli,
+    density) or the list of Dirichlet conditions changes; L when a constant in it changes,
+    and at every solve if it holds coefficients (functions that may change silently).
+    """
+
+    def __init__(self, stepper: GeneralizedAlpha, L, ksp):
+        problem, p = stepper.problem, stepper.params
+        c, V = problem.constants, problem.V
+        self.stepper, self.problem, self.ksp = stepper, problem, ksp
+        a_u, a_phi = ufl.TrialFunctions(V)
+        du, dphi = ufl.TestFunctions(V)
+        m_ufl = inertia_work(a_u, a_phi, du, dphi, c) * problem.dx
+        k_ufl = internal_work(a_u, a_phi, du, dphi, c) * problem.dx
+        self._m, self._k = fem.form(m_ufl), fem.form(k_ufl)
+        self._matrix_constants = list({id(x): x for x in (*m_ufl.constants(), *k_ufl.constants(),
+                                                           stepper.dt)}.values())
+        self._l_ufl = L if L != 0 else None
+        self._l = None if self._l_ufl is None else fem.form(L)
+        self._l_constants = [] if self._l_ufl is None else list(self._l_ufl.constants())
+        self._l_varies = self._l_ufl is not None and len(self._l_ufl.coefficients()) > 0
+        self._matrix_key = self._l_key = None
+        self.M = self.K = self.L = None
+        imap = V.dofmap.index_map
+        self.n_owned = imap.size_local * V.dofmap.index_map_bs
+        self.y1 = self.y2 = self.r = self.dw = None
+        self.alpha_f = p.alpha_f
+        self.c_a = p.alpha_m - (1 - p.alpha_m) * (1 - 2 * p.beta) / (2 * p.beta)
+        self.c_m = lambda dt: (1 - p.alpha_m) / (p.beta * dt**2)
+
+    @classmethod
+    def build(cls, stepper: GeneralizedAlpha, F, L):
+        """The affine step, or None when the residual is not affine in w (then SNES) or the
+        linear solver is not direct (an iterative KSP keeps the Newton control)."""
+        from ufl.algorithms import expand_derivatives
+
+        problem = stepper.problem
+        w = problem.w
+        J = expand_derivatives(ufl.derivative(F, w, ufl.TrialFunction(problem.V)))
+        if len(J.coefficients()) > 0:       # J depends on w (or on other functions)
+            return None
+        if L != 0 and w in L.coefficients():
+            return None
+        ksp = stepper._snes.solver.getKSP()
+        if ksp.getType() != "preonly" or ksp.getPC().getType() not in ("lu", "cholesky"):
+            return None
+        return cls(stepper, L, ksp)
+
+    def _assemble_matrices(self, bcs):
+        from dolfinx.fem.petsc import assemble_matrix
+
+        snes = self.stepper._snes
+        for name, form in (("M", self._m), ("K", self._k)):
+            A = getattr(self, name)
+            if A is None:
+                setattr(self, name, assemble_matrix(form))
+            else:
+                A.zeroEntries()
+                assemble_matrix(A, form)
+            getattr(self, name).assemble()
+        A = snes.A
+        A.zeroEntries()
+        assemble_matrix(A, snes.J, bcs, diag=1.0)
+        A.assemble()
+        self.ksp.setOperators(A, A)
+        if self.r is None:
+            self.y1, self.y2 = self.M.createVecRight(), self.M.createVecRight()
+            self.r, self.dw = self.M.createVecLeft(), self.M.createVecLeft()
+            self.ky = self.M.createVecLeft()
+
+    def _assemble_load(self):
+        from dolfinx.fem.petsc import assemble_vector
+
+        if self.L is None:
+            self.L = assemble_vector(self._l)
+        else:
+            with self.L.localForm() as loc:
+                loc.set(0.0)
+            assemble_vector(self.L, self._l)
+        self.L.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+
+    def solve(self):
+        """Solve the step for ``problem.w``; returns the KSP (to check its reason)."""
+        problem, st = self.problem, self.stepper
+        bcs = list(problem.bcs)
+        key = (_values(self._matrix_constants), tuple(id(bc) for bc in bcs))
+        if key != self._matrix_key or any(a is not b for a, b in zip(bcs, self._bcs)):
+            self._assemble_matrices(bcs)
+            self._matrix_key, self._bcs = key, bcs
+            dofs = [bc.dof_indices() for bc in bcs]
+            self._fixed = np.unique(np.concatenate([d[:n] for d, n in dofs] + [np.zeros(0, np.int32)]))
+        if self._l is not None:
+            lkey = _values(self._l_constants)
+            if self._l_varies or lkey != self._l_key:
+                self._assemble_load()
+                self._l_key = lkey
+        n, dt = self.n_owned, float(st.dt.value)
+        w = problem.w.x.array
+        for bc in bcs:                      # the Dirichlet values (owned and ghost entries)
+            bc.set(w)
+        wn, wo, v, a = w[:n], st.w_old.x.array[:n], st.v.x.array[:n], st.a.x.array[:n]
+        self.y1.array[:] = self.c_m(dt) * (wn - wo - dt * v) + self.c_a * a
+        self.y2.array[:] = (1 - self.alpha_f) * wn + self.alpha_f * wo
+        self.M.mult(self.y1, self.r)
+        self.K.mult(self.y2, self.ky)
+        self.r.axpy(1.0, self.ky)
+        if self.L is not None:
+            self.r.axpy(-1.0, self.L)
+        self.r.array[self._fixed] = 0.0
+        self.ksp.solve(self.r, self.dw)
+        w[:n] -= self.dw.array_r
+        problem.w.x.scatter_forward()
+        return self.ksp

@@ -24,7 +24,8 @@ from mpi4py import MPI
 
 from granfe.forms import MaterialConstants, internal_work, stresses
 from granfe.materials import MicropolarMaterial
-from granfe.solvers import ITERATIVE, check_converged, make_snes_problem, rigid_body_modes
+from granfe.solvers import (ITERATIVE, check_converged, check_ksp_converged, make_snes_problem,
+                            rigid_body_modes)
 from granfe.spaces import COMPONENTS, micropolar_space, sub_space
 
 __all__ = ["MicropolarProblem", "MissingBoundary"]
@@ -236,8 +237,17 @@ class MicropolarProblem:
         return self.checked(self._snes, "static micropolar solve")
 
     def checked(self, snes_problem, what: str) -> int:
+        """SNES iterations of a converged solve of ``w`` (else raise, restoring the last
+        converged state)."""
+        return self._checked(lambda: check_converged(snes_problem, what), what)
+
+    def checked_ksp(self, ksp, what: str) -> int:
+        """1 for a converged linear solve of ``w`` (else raise as :meth:`checked`)."""
+        return self._checked(lambda: check_ksp_converged(ksp, what), what)
+
+    def _checked(self, check, what: str) -> int:
         try:
-            its = check_converged(snes_problem, what)
+            its = check()
         except Exception as err:
             self.w.x.array[:] = self._last_good
             self.w.x.scatter_forward()

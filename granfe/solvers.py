@@ -20,6 +20,7 @@ __all__ = [
     "SolveDidNotConverge",
     "make_snes_problem",
     "check_converged",
+    "check_ksp_converged",
     "rigid_body_modes",
 ]
 
@@ -95,6 +96,19 @@ def check_converged(problem: NonlinearProblem, what: str) -> int:
         f"{what}: SNES did not converge, reason {_SNES_REASONS.get(reason, '?')} ({reason}) "
         f"after {snes.getIterationNumber()} iterations, |F| = {snes.getFunctionNorm():.3e}; "
         f"last linear solve: {_KSP_REASONS.get(ksp_reason, '?')} ({ksp_reason})",
+        reason,
+    )
+
+
+def check_ksp_converged(ksp: PETSc.KSP, what: str) -> int:
+    """Return 1 (one linear solve), or raise :class:`SolveDidNotConverge` naming the KSP reason
+    (e.g. a failed factorisation)."""
+    reason = ksp.getConvergedReason()
+    if reason > 0:
+        return 1
+    raise SolveDidNotConverge(
+        f"{what}: linear solve failed, reason {_KSP_REASONS.get(reason, '?')} ({reason}); "
+        f"preconditioner: {ksp.getPC().getFailedReason()}",
         reason,
     )
 
