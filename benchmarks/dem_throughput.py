@@ -283,6 +283,14 @@ def main():
                   f"{c[str(NSTEPS)] if str(NSTEPS) in c else c[NSTEPS]} vs "
                   f"{ref['contacts'][2000]}")
 
+    from dem import forces, integrate, neighbours
+
+    res["dem_parallel_thresholds"] = dict(
+        pair_candidates=forces.PARALLEL_MIN, kick_drift_particles=integrate.KD_PARALLEL_MIN,
+        neighbour_build_particles=neighbours.PAIRS_PARALLEL_MIN,
+        note="with more than one numba thread the prange drivers run from these sizes on "
+             "(dem.forces.PARALLEL_MIN: off by default, slower than the serial loops on "
+             "this 2-vCPU machine); below them the 2-thread run uses the serial kernels")
     res["machine_note"] = ("2-vCPU VM shared with other jobs: compare medians and rerun; the "
                            "LIGGGHTS numbers from RESULTS.md were measured on an idle machine")
     (out / "results.json").write_text(json.dumps(res, indent=1, default=str))
