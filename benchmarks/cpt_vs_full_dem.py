@@ -76,7 +76,8 @@ def scaling_worker(path: Path) -> None:
             "ranks": comm.size, "grains": model.n_grains, "penetrator_spheres": len(model.pen_index),
             "dofs": V.dofmap.index_map.size_global * V.dofmap.index_map_bs, "setup_s": setup,
             "step_s": [h["wall_time"] for h in history], "dem_s": [h["dem_time"] for h in history],
-            "q_c": [h["q_c"] for h in history], "load_average_1min": os.getloadavg()[0]}))
+            "q_c": [h["q_c"] for h in history], "load_average_1min": os.getloadavg()[0],
+            "split_s": model.step_timings[1:]}))
 
 
 def scaling_line() -> list[dict]:
@@ -103,9 +104,15 @@ def scaling_line() -> list[dict]:
                        "dem_s_median": float(np.median(dem)),
                        "load_average_1min": [r["load_average_1min"] for r in runs],
                        "fe_and_exchange_s_median": float(np.median(step - dem)),
+                       # per FE step on rank 0: ghost interpolation + allgather, DEM sub-steps,
+                       # nodal projection (M^-1 solve), FE solve (+ generalized-alpha update)
+                       "split_s_median": {part: float(np.median([t[part] for r in runs for t in r["split_s"]]))
+                                          for part in runs[0]["split_s"][0]},
                        "setup_s": [r["setup_s"] for r in runs], "runs": runs})
+        split = ", ".join(f"{k} {v:.4f}" for k, v in points[-1]["split_s_median"].items())
         log(f"3D, {ranks} rank(s): {runs[0]['grains']} grains, {runs[0]['dofs']} dofs, per FE step "
-            f"min {step.min():.3f} s, median {np.median(step):.3f} s (DEM {np.median(dem):.3f} s)")
+            f"min {step.min():.3f} s, median {np.median(step):.3f} s (DEM {np.median(dem):.3f} s; "
+            f"medians: {split})")
     return points
 
 

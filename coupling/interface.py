@@ -205,6 +205,13 @@ class CouplingInterface:
         return np.concatenate([f.projection.project(q[self._free_mine], w)
                                for f, q in zip(self.fields, (u[:, : self.gdim], th))])
 
+    def project_displacement(self, u: np.ndarray) -> np.ndarray:
+        """The displacement part of :meth:`project` (this rank's prescribed u dofs) alone, for
+        callers that keep the rotations' prescribed values: no projection of the rotations
+        (its M^-1 solve and collectives) to throw away."""
+        f = self.fields[0]
+        return f.projection.project(np.asarray(u)[self._free_mine, : self.gdim], self.problem.w)
+
     def prescribed_values(self) -> np.ndarray:
         return np.concatenate([self.g.x.array[f.prescribed] for f in self.fields])
 

@@ -609,10 +609,10 @@ class MovingWindowPenetration(CoupledPenetration):
             p.v[self.pen_index] = -prm.velocity * e
             sim.step(1)
         n = self.n_grains
-        D = iface.project(p.x[:n, : self.axis + 1] - self.x_ref[:, : self.axis + 1], np.zeros(n))
         n_u = iface.fields[0].prescribed.size
         old = iface.prescribed_values()
-        D[n_u:] = old[n_u:]   # phi stays the FE's own (grain spins are not a displacement field)
+        D = old.copy()        # phi stays the FE's own (grain spins are not a displacement field)
+        D[:n_u] = iface.project_displacement(p.x[:n, : self.axis + 1] - self.x_ref[:, : self.axis + 1])
         iface.set_prescribed(old + prm.relaxation * (D - old))
         st.solve()
         st.finish()

@@ -415,6 +415,8 @@ class CoupledPenetration:
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
         self.history: list[dict] = []
+        # wall time split of each FE step of run() (not part of the history or checkpoints)
+        self.step_timings: list[dict] = []
         self.depth = 0.0
         saved = None
         if checkpoint is None:
@@ -595,13 +597,16 @@ class CoupledPenetration:
         down = np.eye(3)[ax]
         pen_v = -prm.velocity * down
         n_u = iface.fields[0].prescribed.size
+        clock = time.perf_counter
+        g_current = None   # the ghost motion of the current FE state (from the last step)
         for k in range(len(self.history), stop):
-            t0 = time.perf_counter()
+            t0 = clock()
             # ghosts head for the last converged FE state (a one-step lag, no extrapolation:
             # extrapolating the FE acceleration amplifies the grains' noise)
-            g_prev, g_next = self.g_prev, self._ghost_motion()
+            g_prev, g_next = self.g_prev, (self._ghost_motion() if g_current is None else g_current)
+            t_ghosts = clock() - t0
             st.predict()
-            t_dem = time.perf_counter()
+            t_dem = clock()
             for s in range(1, prm.substeps + 1):
                 frac = s / prm.substeps
                 p.x[self.ghost_local] = self._ghost_positions(g_prev, g_next, frac)
@@ -610,20 +615,23 @@ class CoupledPenetration:
                 p.x[self.pen_index] = self.pen0 + (-self.depth) * down
                 p.v[self.pen_index] = pen_v
                 sim.step(1)
-            t_dem = time.perf_counter() - t_dem
+            t1 = clock()
+            t_dem = t1 - t_dem
             u = p.x[: self.n_grains, :dim] - self.x_ref[:, :dim]
             if self._q_ref is not None:
                 u = u + self._q_ref[:, :dim]
-            # grain spins are not a displacement field: phi free
-            theta = np.zeros(self.n_grains if dim == 2 else (self.n_grains, 3))
-            D = iface.project(u, theta)
             # only the displacement part is prescribed from the grains; phi from the FE itself
+            # (grain spins are not a displacement field)
             old = iface.prescribed_values()
-            D[n_u:] = old[n_u:]
+            D = old.copy()
+            D[:n_u] = iface.project_displacement(u)
             iface.set_prescribed(old + prm.relaxation * (D - old))
+            t2 = clock()
             st.solve()
             st.finish()
-            g_new = self._ghost_motion()
+            t3 = clock()
+            g_new = g_current = self._ghost_motion()
+            t4 = clock()
             mismatch = float(np.linalg.norm(g_new[0] - g_next[0]) / max(np.linalg.norm(g_new[0]), 1e-30))
             ghost_max = float(np.abs(g_new[0]).max(initial=0.0))
             # the ghosts sit in the far field of the cone: moving more than twice as far as the
@@ -640,7 +648,10 @@ class CoupledPenetration:
             f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
             self.history.append(cone_record(prm, f, self.on_cone, self.depth, k + 1, st.t,
                                             interface_mismatch=mismatch, dem_time=t_dem,
-                                            wall_time=time.perf_counter() - t0))
+                                            wall_time=clock() - t0))
+            self.step_timings.append({"ghost_motion": t_ghosts + t4 - t3, "dem": t_dem,
+                                      "projection": t2 - t1, "fe_solve": t3 - t2,
+                                      "total": self.history[-1]["wall_time"]})
             if progress is not None:
                 progress(self.history[-1])
         return self.history
