@@ -326,7 +326,13 @@ class Simulation:
         self.walls = WallSet(walls)
         if len(self.walls) and self.walls.material.max() >= len(mats):
             raise ValueError("a PlaneWall.material index is beyond the material list")
-        self.gravity = np.asarray(gravity, float).reshape(3)
+        g = np.asarray(gravity, float)
+        if particles.dim == 2 and g.shape == (2,):
+            g = np.append(g, 0.0)
+        if g.shape != (3,) or not np.isfinite(g).all():
+            raise ValueError(f"gravity must be 3 finite numbers [m/s^2] (2 or 3 in 2D, z = 0), "
+                             f"got {gravity!r}")
+        self.gravity = g
         if particles.dim == 2 and self.gravity[2] != 0:
             raise ValueError("gravity[2] must be 0 for 2D disks")
         self.cell = cell

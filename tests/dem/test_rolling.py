@@ -59,3 +59,13 @@ def test_no_rolling_resistance_keeps_rolling():
     sim.step(5000)
     assert sim.p.v[0, 0] == pytest.approx(V0, rel=1e-3)
     assert spin(sim, 3) * R == pytest.approx(V0, rel=1e-3)
+
+
+def test_gravity_checked_and_2d_pairs_accepted():
+    mat = ContactMaterial(E=1e8, nu=0.25, density=2650.0, friction=0.5, restitution=0.2)
+    p = Particles.spheres([[0.0, R]], R, 2650.0, dim=2)
+    assert np.array_equal(Simulation(p, mat, gravity=(0.0, -G)).gravity, [0.0, -G, 0.0])
+    with pytest.raises(ValueError, match="gravity must be 3 finite numbers"):
+        Simulation(p, mat, gravity=(0.0, -G, 0.0, 1.0))
+    with pytest.raises(ValueError, match="gravity must be 3 finite numbers"):
+        Simulation(p, mat, gravity=(0.0, np.nan, 0.0))
