@@ -28,7 +28,7 @@ import numpy as np
 from mpi4py import MPI
 
 from coupling.moving_window import MovingWindowParameters, MovingWindowPenetration
-from coupling.penetration import PenetrationParameters
+from coupling.penetration import CouplingUnstable, PenetrationParameters
 
 # ---- parameters (SI, per unit thickness) ------------------------------------------------------
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -109,7 +109,13 @@ cpt.move = move_with_snapshots
 
 # ---- solve -------------------------------------------------------------------------------------------
 t0 = time.perf_counter()
-history = cpt.run()
+stopped = None
+try:
+    history = cpt.run()
+except CouplingUnstable as err:
+    # keep what was computed: plots and results up to the last converged step, then stop
+    stopped, history = str(err), cpt.history
+    log(f"run stopped: {stopped}")
 t_run = time.perf_counter() - t0
 log(f"{len(history)} FE steps, {len(cpt.moves)} window moves, {cpt.sim.nsteps} DEM steps of the "
     f"last window in {t_run:.1f} s")
@@ -134,27 +140,28 @@ if comm.rank == 0:
     fig.tight_layout()
     fig.savefig(args.out / "tip_resistance.png", dpi=120)
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 6), sharey=True)
-    for ax, key in zip(axes, ("before", "after")):
-        s = snapshots[key]
-        tc = ax.tricontourf(s["nodes"][:, 0], s["nodes"][:, 1], s["u"] * 1e3, levels=20, cmap="viridis")
-        colors = np.where(s["kind"] == 1, "tab:red", "white")
-        colors[s["n"]:] = "k"
-        ax.add_collection(PatchCollection([Circle(c, r) for c, r in zip(s["x"], s["r"])],
-                                          facecolors=colors, edgecolors="0.3", linewidths=0.2))
-        (x0, y0), (x1, y1) = s["lo"], s["hi"]
-        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="orange", lw=1.2))
-        ax.set_xlim(-2.2 * prm.window_half_width, 2.2 * prm.window_half_width)
-        ax.set_ylim(s["lo"][1] - 0.03, cpt.surface + 0.01)
-        ax.set_aspect("equal")
-        ax.set_title(f"{key} move 1 (depth {s['depth'] * 1e3:.1f} mm)")
-    fig.colorbar(tc, ax=axes, label="|u| of the continuum [mm]; grains: white free, red ghost, black cone")
-    fig.savefig(args.out / "window_move.png", dpi=130)
+    if "after" in snapshots:  # the first move happened
+        fig, axes = plt.subplots(1, 2, figsize=(11, 6), sharey=True)
+        for ax, key in zip(axes, ("before", "after")):
+            s = snapshots[key]
+            tc = ax.tricontourf(s["nodes"][:, 0], s["nodes"][:, 1], s["u"] * 1e3, levels=20, cmap="viridis")
+            colors = np.where(s["kind"] == 1, "tab:red", "white")
+            colors[s["n"]:] = "k"
+            ax.add_collection(PatchCollection([Circle(c, r) for c, r in zip(s["x"], s["r"])],
+                                              facecolors=colors, edgecolors="0.3", linewidths=0.2))
+            (x0, y0), (x1, y1) = s["lo"], s["hi"]
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="orange", lw=1.2))
+            ax.set_xlim(-2.2 * prm.window_half_width, 2.2 * prm.window_half_width)
+            ax.set_ylim(s["lo"][1] - 0.03, cpt.surface + 0.01)
+            ax.set_aspect("equal")
+            ax.set_title(f"{key} move 1 (depth {s['depth'] * 1e3:.1f} mm)")
+        fig.colorbar(tc, ax=axes, label="|u| of the continuum [mm]; grains: white free, red ghost, black cone")
+        fig.savefig(args.out / "window_move.png", dpi=130)
 
     results = {"parameters": prm.__dict__, "moving": moving.__dict__, "fixed_window_refused": refused,
                "setup_time_s": t_setup, "run_time_s": t_run, "ranks": comm.size,
                "moves": cpt.moves, "history": history,
-               "q_c_max": float(qc.max()), "final_grains": cpt.n_grains}
+               "q_c_max": float(qc.max()), "final_grains": cpt.n_grains, "stopped": stopped}
     (args.out / "results.json").write_text(json.dumps(results, indent=2, default=float))
     for m in cpt.moves:
         e0, e1 = m["energy_before"], m["energy_after_settle"]
@@ -167,6 +174,9 @@ if comm.rank == 0:
             f"{m['stress_axis']['layer_above_before_move']:.3g} Pa")
 
 # ---- checks -------------------------------------------------------------------------------------------
+if stopped:
+    raise SystemExit(f"the run stopped before depth {moving.depth} m ({stopped}); its results so far "
+                     f"are in {args.out}")
 assert len(cpt.moves) >= 2, f"expected at least two window moves, got {len(cpt.moves)}"
 assert history[-1]["depth"] >= moving.depth - 1e-9
 assert all(np.isfinite(h["q_c"]) for h in history)
