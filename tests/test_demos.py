@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,3 +49,20 @@ def test_demo_two_ranks(script, tmp_path):
     if not MPIEXEC.exists():
         pytest.skip("mpiexec not in the virtual environment")
     _run([str(MPIEXEC), "-n", "2", sys.executable, script], tmp_path)
+
+
+# benchmarks, reduced (GRANFE_SHORT=1): they run and their own checks pass
+BENCHMARKS = [
+    ["benchmarks/stability.py"],
+    ["benchmarks/cpt_vs_full_dem.py", "--parts", "2d"],
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cmd", BENCHMARKS, ids=lambda c: c[0])
+def test_benchmark_short(cmd, tmp_path):
+    results = _run([sys.executable, *cmd], tmp_path)
+    if "stability" in cmd[0]:
+        assert {r["status"] for r in results["runs"]} <= {"finished", "stopped", "refused"}
+    else:
+        assert all(np.isfinite(p["q_c_rms_error"]) for p in results["coupled"])
