@@ -209,7 +209,9 @@ def plot(results: dict) -> None:
     import matplotlib.pyplot as plt
 
     have_2d = "full_dem" in results
-    fig, axes = plt.subplots(1, 3 if have_2d else 1, figsize=(16 if have_2d else 5.5, 4.5), squeeze=False)
+    line = results.get("scaling_3d")
+    panels = (2 if have_2d else 0) + (1 if line else 0)
+    fig, axes = plt.subplots(1, panels, figsize=(5.4 * panels, 4.5), squeeze=False)
     axes = axes[0]
     if have_2d:
         full = results["full_dem"]
@@ -240,9 +242,8 @@ def plot(results: dict) -> None:
         axes[1].set_ylabel("relative RMS error of q_c")
         axes[1].legend(fontsize=8)
         axes[1].set_title("2D")
-    line = results.get("scaling_3d")
-    ax = axes[-1]
     if line:
+        ax = axes[-1]
         ranks = np.array([p["ranks"] for p in line["points"]])
         med = np.array([p["step_s_median"] for p in line["points"]])
         ax.plot(ranks, med, "o-", label="wall time per FE step (median)")

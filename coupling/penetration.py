@@ -212,6 +212,23 @@ def check_push(prm: PenetrationParameters, dt: float) -> None:
                          f"most {0.05 * prm.radius / dt:.3g} m/s")
 
 
+def lower_penetrator(p, n: int, pen0: np.ndarray, r_pen: float, prm) -> None:
+    """A packing settles by a few grain radii (more in a deep full chamber than in a window):
+    move the penetrator clump ``pen0`` (in place, and its particles after the ``n`` grains)
+    down so that its lowest point is 0.1 grain radius above the settled grains it can meet,
+    the same start for every packing instead of a push through air."""
+    ax = VERTICAL[prm.dim]
+    lateral = [k for k in range(prm.dim) if k != ax]
+    near = np.linalg.norm(p.x[:n][:, lateral], axis=1) < prm.cone_radius + 2 * prm.radius
+    if not near.any():
+        return
+    top = float((p.x[:n, ax][near] + p.radius[:n][near]).max())
+    shift = top + 0.1 * prm.radius - float((pen0[:, ax] - r_pen).min())
+    if shift < 0:
+        pen0[:, ax] += shift
+        p.x[n:n + len(pen0)] = pen0
+
+
 def _cone_and_material(prm, top):
     """The penetrator clump above ``top`` (centres, radius, tip mask) and the contact law."""
     shaft = prm.depth + 3 * prm.cone_radius
@@ -330,6 +347,7 @@ class DemPenetration:
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
         t0 = time.perf_counter()
         self.sim.step(int(np.ceil(prm.settle_time / self.sim.dt)))
+        lower_penetrator(self.sim.p, n, self.pen0, r_pen, prm)
         log(f"full DEM: settled {n} grains in {time.perf_counter() - t0:.1f} s")
         self.history: list[dict] = []
 
@@ -426,8 +444,7 @@ class CoupledPenetration:
             log(f"settled {n} grains in {time.perf_counter() - t0:.1f} s "
                 f"({self.sim.nsteps} steps of {self.sim.dt:.3g} s), kinetic energy "
                 f"{e['kinetic_translational']:.3g} J")
-            if dim == 3:
-                self._lower_penetrator(r_pen)
+            self._lower_penetrator(r_pen)
             self.x_ref = self.sim.p.x[:n].copy()
             self.material_fe, self.contact_stats = self._continuum_material()
             if prm.continuum_stiffness != 1.0:
@@ -477,17 +494,7 @@ class CoupledPenetration:
 
     # ---- set-up -------------------------------------------------------------------------
     def _lower_penetrator(self, r_pen: float) -> None:
-        """3D: a packing settles by several grain radii; start the tip 0.1 grain radius above
-        the settled grains near the axis instead of above the lattice (no push through air)."""
-        p, n, prm = self.sim.p, self.n_grains, self.prm
-        near = np.hypot(p.x[:n, 0], p.x[:n, 1]) < prm.cone_radius + 2 * prm.radius
-        if not near.any():
-            return
-        top = float((p.x[:n, 2][near] + p.radius[:n][near]).max())
-        shift = top + 0.1 * prm.radius - float((self.pen0[:, 2] - r_pen).min())
-        if shift < 0:
-            self.pen0[:, 2] += shift
-            p.x[self.pen_index] = self.pen0
+        lower_penetrator(self.sim.p, self.n_grains, self.pen0, r_pen, self.prm)
 
     def _continuum_material(self):
         """Micropolar constants and density of the settled packing (module docstring, 3.)."""
