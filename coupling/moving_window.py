@@ -49,6 +49,7 @@ from coupling.penetration import (CoupledPenetration, CouplingUnstable, Penetrat
                                   cone_clump, cone_record)
 from coupling.regions import Box, CouplingRegions
 from dem import GHOST, Particles, Simulation, build_pairs
+from dem.packing import push_apart
 from dem.neighbours import carry_history
 from dem.stress import contact_points, love_weber_stress
 from granfe.dynamics import GeneralizedAlpha
@@ -167,36 +168,6 @@ def lattice_fill(lo, hi, radius: float, jitter: float, fraction: float, rng):
     out = np.zeros((len(X), 3))
     out[:, :dim] = X + d * amp[:, None]
     return out, r
-
-
-def push_apart(x, r, movable, tolerance: float, iterations: int):
-    """Remove overlaps by moving the ``movable`` particles only (Jacobi projection: each
-    overlap is split between two movable particles, or taken by the movable one alone).
-
-    Returns new centres (n, 3), the iterations used and the largest overlap left [m].
-    """
-    x = x.copy()
-    movable = np.asarray(movable, bool)
-    worst = 0.0
-    for it in range(iterations + 1):
-        pi, pj = build_pairs(x, r, 0.0)
-        d = x[pj] - x[pi]
-        dist = np.linalg.norm(d, axis=1)
-        ov = r[pi] + r[pj] - dist
-        hit = (ov > 0) & (movable[pi] | movable[pj])
-        worst = float(ov[hit].max(initial=0.0))
-        if worst <= tolerance or it == iterations:
-            return x, it, worst
-        pi, pj, n, ov = pi[hit], pj[hit], d[hit] / dist[hit, None], ov[hit]
-        both = movable[pi] & movable[pj]
-        share_i = np.where(both, 0.5, movable[pi].astype(float))
-        share_j = np.where(both, 0.5, movable[pj].astype(float))
-        dx = np.zeros_like(x)
-        # slightly more than the overlap: the Jacobi sweep otherwise converges only linearly
-        np.add.at(dx, pi, -(1.01 * share_i * ov)[:, None] * n)
-        np.add.at(dx, pj, (1.01 * share_j * ov)[:, None] * n)
-        x += dx
-    return x, iterations, worst
 
 
 # ---- FE values at points -----------------------------------------------------------------

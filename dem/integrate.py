@@ -353,7 +353,8 @@ class Simulation:
         self.blowup_factor, self.check_every = float(blowup_factor), int(check_every)
         self.state_path = state_path or os.path.join(os.getcwd(), "dem_last_good_state.npz")
         if cell is None:
-            particles.check_overlaps(allow=allow_overlap)
+            # round-off contacts (1e-9 of a radius) are not overlaps
+            particles.check_overlaps(allow=allow_overlap, tol=1e-9 * float(particles.radius.max()))
         self.time, self.nsteps = 0.0, 0
         self._ghosts = np.flatnonzero(particles.kind == GHOST)
         n = particles.n

@@ -140,7 +140,8 @@ class Particles:
         if count and not allow:
             raise OverlapError(f"{count} overlapping particle pairs at the start; the largest "
                                f"overlap is {ov[k]:.6g} m between particles {worst} "
-                               f"(relax the packing first or pass allow_overlap=True)")
+                               f"(dem.packing.remove_overlaps(particles) moves the free ones apart, or pass "
+                               f"allow_overlap=True to start from it)")
         return count, float(max(ov[k], 0.0)), worst
 
     def state_dict(self) -> dict:
