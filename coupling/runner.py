@@ -242,4 +242,10 @@ def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True) -
     if scene.scene.kind != "bonded_punch":
         raise FileNotFoundError(f"restart_scene runs bonded_punch scenes; {scene.scene.kind!r} "
                                 "scenes restart through coupling.penetration_run.run_penetration")
+    if step >= scene.penetrator.steps:
+        if comm.rank == 0:
+            print(f"granfe: the run in {out} is complete (step {step} of {scene.penetrator.steps}); "
+                  "nothing to restart (raise penetrator.steps in its scene.toml to go further)",
+                  flush=True)
+        return json.loads((out / "history.json").read_text())
     return run_scene(scene, out, comm, progress, start_step=step)

@@ -56,6 +56,11 @@ def test_run_then_restart_reproduces(tmp_path):
     again = json.loads(history_file.read_text())["steps"]
     assert [h["step"] for h in again] == [1, 2]
     assert abs(again[1]["punch_force"] - history[1]["punch_force"]) < 1e-6 * abs(history[1]["punch_force"])
+    # a complete run: restart says so and leaves it alone
+    proc = granfe("restart", str(out), "--no-progress")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "is complete (step 2 of 2); nothing to restart" in proc.stdout
+    assert json.loads(history_file.read_text())["steps"] == again
 
 
 @pytest.mark.slow
