@@ -138,35 +138,31 @@ def timed(factory):
     return model, history, t1 - t0, time.perf_counter() - t1
 
 
-def ensemble(make, seeds, grid):
-    """Runs ``make(seed)`` for each seed: smoothed q_c of each on ``grid`` (depths), the mean
-    over the last half of each push, mean set-up and push times, grains."""
-    curves, tails, setups, runs, grains = [], [], [], [], []
+def ensemble(make, seeds, grid=None):
+    """Runs ``make(seed)`` for each seed. Returns the depth grid (``grid``, or the first
+    run's depths), the smoothed q_c of each run on it, the mean q_c over the last half of
+    each push, mean set-up and push times, the first run's grains and history."""
+    curves, tails, setups, runs = [], [], [], []
     for seed in seeds:
-        model, h, setup, run = timed(lambda: make(seed))
+        model, h, setup, run = timed(lambda seed=seed: make(seed))
         d, q = smoothed(h)
-        curves.append(np.interp(grid, d, q) if grid is not None else (d, q))
+        if grid is None:
+            grid = d
+        curves.append(np.interp(grid, d, q))
         tails.append(float(np.mean([x["q_c"] for x in h[len(h) // 2:]])))
         setups.append(setup)
         runs.append(run)
-        grains.append(model.n_grains)
-    return curves, tails, float(np.mean(setups)), float(np.mean(runs)), grains
+        if seed == seeds[0]:
+            first = (model.n_grains, h)
+    return (grid, np.array(curves), tails, float(np.mean(setups)), float(np.mean(runs)), *first)
 
 
 def coupled_vs_full() -> dict:
     seeds = list(range(1, args.seeds + 1))
     full_prm = PenetrationParameters(**base, window_half_width=max(args.windows), window_depth=0.08)
-    first = replace(full_prm, seed=seeds[0])
-    # the depth grid of the first full run; every curve is interpolated onto it
-    model, h0, s0, r0 = timed(lambda: DemPenetration(first, log=log))
-    grid, q0 = smoothed(h0)
-    rest = ([], [], s0, r0, [])
-    if len(seeds) > 1:
-        rest = ensemble(lambda sd: DemPenetration(replace(full_prm, seed=sd), log=log), seeds[1:], grid)
-    full_curves = np.array([q0] + list(rest[0]))
-    full_tails = [float(np.mean([x["q_c"] for x in h0[len(h0) // 2:]]))] + list(rest[1])
-    setup_full = (s0 + rest[2] * (len(seeds) - 1)) / len(seeds)
-    run_full = (r0 + rest[3] * (len(seeds) - 1)) / len(seeds)
+    # every curve is interpolated onto the depths of the first full run
+    grid, full_curves, full_tails, setup_full, run_full, n_full, h0 = ensemble(
+        lambda sd: DemPenetration(replace(full_prm, seed=sd), log=log), seeds)
     q_ref = full_curves.mean(axis=0)
     # compare once the cone tip has gone a third of its height into the grains
     embedded = grid > full_prm.cone_radius / np.tan(np.radians(full_prm.apex_deg) / 2) / 3
@@ -178,26 +174,25 @@ def coupled_vs_full() -> dict:
     scatter = float(np.mean([rms(q) for q in full_curves])) if len(seeds) > 1 else float("nan")
     std_error = (float(np.sqrt(np.mean(full_curves[:, embedded].var(axis=0, ddof=1)) / len(seeds)) / scale)
                  if len(seeds) > 1 else float("nan"))
-    log(f"full DEM: {model.n_grains} grains, {len(seeds)} packings, set-up {setup_full:.1f} s, push "
+    log(f"full DEM: {n_full} grains, {len(seeds)} packings, set-up {setup_full:.1f} s, push "
         f"{run_full:.1f} s per run; one packing against the average: {scatter:.1%} RMS, standard "
         f"error of the average {std_error:.1%}")
     points = []
     for a in args.windows:
         prm = PenetrationParameters(**base, window_half_width=a, window_depth=min(0.08, 0.11))
-        curves, tails, setup, run, grains = ensemble(
-            lambda sd: CoupledPenetration(replace(prm, seed=sd), comm, log=log),
-            seeds, grid)
+        _, curves, tails, setup, run, grains, _ = ensemble(
+            lambda sd, prm=prm: CoupledPenetration(replace(prm, seed=sd), comm, log=log), seeds, grid)
         q = np.mean(curves, axis=0)
         err = rms(q)
         mean_err = float(abs(np.mean(tails) - np.mean(full_tails)) / abs(np.mean(full_tails)))
-        points.append({"window_half_width": a, "grains": grains[0], "setup_s": setup, "run_s": run,
+        points.append({"window_half_width": a, "grains": grains, "setup_s": setup, "run_s": run,
                        "total_s": setup + run, "q_c_rms_error": err, "q_c_mean_error_last_half": mean_err,
                        "q_c_rms_error_per_packing": [rms(c) for c in curves],
                        "q_c_mean": q.tolist()})
-        log(f"window {a:.3f} m: {grains[0]} grains, set-up {setup:.1f} s, push {run:.1f} s per run, "
+        log(f"window {a:.3f} m: {grains} grains, set-up {setup:.1f} s, push {run:.1f} s per run, "
             f"seed-averaged q_c RMS error {err:.1%}, mean q_c error {mean_err:.1%}")
     return {"parameters": base, "seeds": seeds, "depth": grid.tolist(),
-            "full_dem": {"grains": model.n_grains, "setup_s": setup_full, "run_s": run_full,
+            "full_dem": {"grains": n_full, "setup_s": setup_full, "run_s": run_full,
                          "total_s": setup_full + run_full, "q_c_mean": q_ref.tolist(),
                          "q_c_std": full_curves.std(axis=0).tolist(),
                          "one_packing_rms_vs_average": scatter, "standard_error_of_average": std_error,

@@ -49,32 +49,33 @@ SWEEPS = {
     "dt_factor": [4.0] if SHORT else [2.0, 5.0, 10.0, 15.0, 20.0, 25.0, 40.0],
     "continuum_stiffness": [10.0] if SHORT else [0.01, 0.1, 10.0, 100.0, 1000.0],
 }
+
+
+def attempt(name, value, out) -> dict:
+    """One run with ``name = value``: finished (max q_c), stopped (its message and whether
+    the last state was written) or refused before anything was computed."""
+    try:
+        prm = PenetrationParameters(**base, **{name: value})
+    except ValueError as err:
+        return {"status": "refused", "message": str(err)[:300]}
+    try:
+        res = run_penetration(prm, out, comm, frames=1, fields=False, particles=False, png=False,
+                              progress=False, log=lambda m: None)
+    except RuntimeError as err:
+        return {"status": "stopped", "message": str(err).split("; the ")[0][:300],
+                "last_state_written": (Path(out) / "last_good").exists()}
+    qc = np.array([h["q_c"] for h in res["history"]])
+    sane = bool(np.all(np.isfinite(qc)) and np.abs(qc).max() < 1e7)
+    return {"status": "finished" if sane else "GARBAGE", "max_q_c": float(np.abs(qc).max()),
+            "message": ""}
+
+
 rows = []
 for name, values in SWEEPS.items():
     for value in values:
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            out = comm.bcast(tmp, root=0)
-            try:
-                prm = PenetrationParameters(**base, **{name: value})
-            except ValueError as err:  # refused before anything is computed
-                rows.append({"parameter": name, "value": value, "status": "refused",
-                             "message": str(err)[:300], "time_s": time.perf_counter() - t0})
-                if comm.rank == 0:
-                    print(f"{name} = {value}: refused {rows[-1]['message'][:120]}", flush=True)
-                continue
-            try:
-                res = run_penetration(prm, out, comm, frames=1, fields=False, particles=False, png=False,
-                                      progress=False, log=lambda m: None)
-                qc = np.array([h["q_c"] for h in res["history"]])
-                sane = bool(np.all(np.isfinite(qc)) and np.abs(qc).max() < 1e7)
-                row = {"parameter": name, "value": value, "status": "finished" if sane else "GARBAGE",
-                       "max_q_c": float(np.abs(qc).max()), "message": ""}
-            except RuntimeError as err:
-                last = Path(out) / "last_good"
-                row = {"parameter": name, "value": value, "status": "stopped",
-                       "message": str(err).split("; the ")[0][:300],
-                       "last_state_written": last.exists()}
+            row = {"parameter": name, "value": value, **attempt(name, value, comm.bcast(tmp, root=0))}
         row["time_s"] = time.perf_counter() - t0
         rows.append(row)
         if comm.rank == 0:
