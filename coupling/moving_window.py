@@ -49,8 +49,8 @@ from coupling.penetration import (CoupledPenetration, CouplingUnstable, Penetrat
                                   cone_clump, cone_record)
 from coupling.regions import Box, CouplingRegions
 from dem import GHOST, Particles, Simulation, build_pairs
-from dem.packing import push_apart
 from dem.neighbours import carry_history
+from dem.packing import push_apart
 from dem.stress import contact_points, love_weber_stress
 from granfe.dynamics import GeneralizedAlpha
 

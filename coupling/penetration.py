@@ -64,6 +64,7 @@ from coupling.penetrators import cone_clump, penetrator_clump, tip_height
 from coupling.regions import Box, CouplingRegions
 from dem import GHOST, ContactMaterial, Particles, Simulation
 from dem.bonded import hexagonal_lattice, hexagonal_lattice_micropolar
+from dem.timestep import DEFAULT_SAFETY, rayleigh_dt
 from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
@@ -151,8 +152,6 @@ class PenetrationParameters:
                              f"(chamber_width = {self.chamber_width} m is too small)")
         if not 0 <= self.jitter < 0.5:
             raise ValueError(f"jitter must lie in [0, 0.5), got {self.jitter!r}")
-        from dem.timestep import DEFAULT_SAFETY
-
         law = "linear" if self.dim == 2 else "hertz_mindlin"
         if self.dt_factor * DEFAULT_SAFETY[law] > 1.0:
             raise ValueError(f"dt_factor = {self.dt_factor} puts the DEM step above the critical "
@@ -194,8 +193,6 @@ def dem_time_step(prm: PenetrationParameters, grain_radius: np.ndarray) -> float
     own stability does not matter); 2D: None (the engine's default of the linear law)."""
     if prm.dim == 2:
         return None
-    from dem.timestep import DEFAULT_SAFETY, rayleigh_dt
-
     return DEFAULT_SAFETY["hertz_mindlin"] * rayleigh_dt(grain_radius, prm.youngs_modulus,
                                                          prm.nu, prm.density)
 
@@ -444,7 +441,7 @@ class CoupledPenetration:
             log(f"settled {n} grains in {time.perf_counter() - t0:.1f} s "
                 f"({self.sim.nsteps} steps of {self.sim.dt:.3g} s), kinetic energy "
                 f"{e['kinetic_translational']:.3g} J")
-            self._lower_penetrator(r_pen)
+            lower_penetrator(self.sim.p, n, self.pen0, r_pen, prm)
             self.x_ref = self.sim.p.x[:n].copy()
             self.material_fe, self.contact_stats = self._continuum_material()
             if prm.continuum_stiffness != 1.0:
@@ -493,9 +490,6 @@ class CoupledPenetration:
             self._restore_run(saved)
 
     # ---- set-up -------------------------------------------------------------------------
-    def _lower_penetrator(self, r_pen: float) -> None:
-        lower_penetrator(self.sim.p, self.n_grains, self.pen0, r_pen, self.prm)
-
     def _continuum_material(self):
         """Micropolar constants and density of the settled packing (module docstring, 3.)."""
         if self.prm.dim == 3:
