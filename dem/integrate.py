@@ -458,7 +458,7 @@ class Simulation:
         Between two steps of one call (unless a check falls in between) the second
         half-kick and the next drift run as one pass over the particles (`_kick_drift`:
         the same bits as `_kick` then `_drift`)."""
-        p, dt, cell, nl = self.p, self.dt, self.cell, self.nl
+        p, dt, cell = self.p, self.dt, self.cell
         h = 0.5 * dt
         per, lg, org = (0, _NO_L, _NO_O) if cell is None else \
             (1, cell.velocity_gradient, cell.origin)
