@@ -352,7 +352,7 @@ class Simulation:
         self.domain = None if domain is None else np.asarray(domain, float).reshape(2, 3)
         self.blowup_factor, self.check_every = float(blowup_factor), int(check_every)
         self.state_path = state_path or os.path.join(os.getcwd(), "dem_last_good_state.npz")
-        if cell is None:
+        if cell is None and not allow_overlap:
             # round-off contacts (1e-9 of a radius) are not overlaps
             particles.check_overlaps(allow=allow_overlap, tol=1e-9 * float(particles.radius.max()))
         self.time, self.nsteps = 0.0, 0
@@ -402,6 +402,7 @@ class Simulation:
         p, nl, w = self.p, self.nl, self.walls
         if nl.needs_rebuild(p.x, w.point, self.cell, disp2):
             nl.build(p.x, p.radius, w.point, w.normal, self.cell)
+            self._prune(nl)
             self._check_domain()
         h = [nl.hist, nl.slip, nl.etan, nl.whist, nl.wslip, nl.wetan]
         lay = None
@@ -428,6 +429,10 @@ class Simulation:
         w.force[:] = self._wf[:, :3]
         return e1 + e2, s1 + s2
 
+    def _prune(self, nl):
+        """Called after every neighbour build, before the force pass: a subclass may drop
+        candidates it does not need (`dem.parallel` drops the halo copies' own contacts)."""
+
     def compute_forces(self, update_history: bool = True):
         """Contact forces at the current state into ``p.force``/``p.torque`` and
         ``walls.force``. Returns (elastic energy [J], tangential spring energy [J], power
@@ -452,12 +457,16 @@ class Simulation:
             (self.walls.point.copy() if len(self.walls) else _EMPTY)
 
     # ---------------------------------------------------------------- stepping
-    def step(self, n: int = 1):
+    def step(self, n: int = 1, hook=None):
         """Advance n steps of dt (velocity Verlet), with blow-up and domain checks.
 
         Between two steps of one call (unless a check falls in between) the second
         half-kick and the next drift run as one pass over the particles (`_kick_drift`:
-        the same bits as `_kick` then `_drift`)."""
+        the same bits as `_kick` then `_drift`), so a caller that needs to act between
+        steps passes ``hook`` rather than calling ``step(1)`` n times: ``hook()`` runs after
+        each step's force pass, before its second half-kick (forces new, v still the
+        half-step velocity; it may write the rows of particles that are not FREE), and a
+        true return ends the call after that step. Returns the number of steps done."""
         p, dt, cell = self.p, self.dt, self.cell
         h = 0.5 * dt
         per, lg, org = (0, _NO_L, _NO_O) if cell is None else \
@@ -483,7 +492,8 @@ class Simulation:
             self._wf_prev[:] = self._wf
             e, es = self._evaluate(True, d2 if cell is None else None, s == 0)
             gnow = self._ghost_rows() if ghosts else None
-            if s == n - 1 or (self.nsteps + 1) % self.check_every == 0:
+            last = hook is not None and bool(hook())
+            if last or s == n - 1 or (self.nsteps + 1) % self.check_every == 0:
                 wc1, we1, wd1, wg = _kick(p.v, p.omega, *acc, *prm, self._hit)
                 pending = None
             else:
@@ -497,8 +507,12 @@ class Simulation:
             self.nsteps += 1
             if self.nsteps % self.check_every == 0:
                 self._check()
+            if last:
+                n = s + 1
+                break
         if self.nsteps % self.check_every:
             self._check()
+        return n
 
     def _x0_tracked(self):
         """Build positions of the neighbour list for the drift to measure displacements

@@ -1,14 +1,18 @@
 """MPI spatial domain decomposition of a DEM run: one `Simulation` per rank, halos of ghosts.
 
 Each rank owns the particles of its subdomain (recursive bisection of the particle box along
-its longest axis, or any ``owner(x) -> ranks`` the caller passes, e.g. the FE partition) and
-holds, as GHOST particles of its local `dem.Simulation`, copies of the other ranks' particles
-within ``2 r_max + halo_skin`` of its owned particles' box. Before every step the owners send
-x, v, omega of those copies *as the coming half-kick and drift will make them* (one
-``Alltoallv`` of a contiguous buffer); a GHOST keeps its prescribed state through the step,
-so the local run's force pass sees the same neighbours as the serial one. A pair of an owned
-particle and a copy is computed on both ranks from identical data, each rank integrating its
-own copy of the pair's tangential history. Only the public `Simulation` API is used.
+its longest axis not along gravity, or any ``owner(x) -> ranks`` the caller passes, e.g. the
+FE partition) and holds, as GHOST particles of its local `dem.Simulation`, copies of the
+other ranks' particles within ``2 r_max + halo_skin`` of its owned particles' box. The n
+steps of a call run in one call of the local `Simulation.step` (its fused kick + drift
+pass, no per-step Python set-up); its hook, after each force pass, has the owners send x,
+v, omega of the copies *as the coming half-kicks and drift will make them* (one
+``Alltoallv`` of a contiguous buffer, whose header rows also carry each rank's largest
+coming displacement, so it is the step's only synchronisation); a GHOST keeps its
+prescribed state through the step, so the local run's force pass sees the same neighbours
+as the serial one. A pair of an owned particle and a copy is computed on both ranks from
+identical data, each rank integrating its own copy of the pair's tangential history. On
+one rank nothing is exchanged: the run is the local `Simulation`.
 
 Why the result equals the serial run to round-off (in practice bit for bit): the local arrays
 are kept in global-id order, so local pairs (i < j) sort as the serial ones; every contact of
@@ -20,6 +24,11 @@ than ``halo_skin / 2`` since the last one (so no pair outside the halo can have 
 decomposition migrates particles to their new owners with the forces of the last step and
 their contact history, keyed by global ids: a pair's history is authoritative on the owner
 of its lower-id particle, which sends it to both new owners.
+
+The energy ledger (`DistributedSimulation.energy`) books every term once: a particle's
+kinetic energy and works on its owner, a pair's elastic energy and the change of its
+spring energy on the owner of its lower id, a wall contact on the particle's owner (a halo
+copy has no wall contacts, nor contacts with other copies: the local lists drop them).
 
 mpi4py is imported lazily (``import dem`` stays free of MPI); every public method of
 `DistributedSimulation` is collective.
@@ -35,7 +44,8 @@ from numba import njit
 
 from dem.contact import ContactMaterial
 from dem.errors import BlowUpError, DomainError, TimeStepError
-from dem.integrate import Simulation
+from dem.forces import NOUT, pair_forces
+from dem.integrate import Simulation, _kinetic_finite
 from dem.neighbours import carry_history
 from dem.state import FREE, GHOST, Particles
 from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
@@ -44,13 +54,16 @@ from dem.walls import PlaneWall, WallSet
 __all__ = ["DistributedSimulation", "RecursiveBisection"]
 
 # particle rows exchanged at a decomposition: global id, state, the forces of the last step
-# (the next half-kick needs them)
+# (the next half-kick needs them) with their conservative and damping parts (the next drift
+# books their half of the step's work)
 GID, X, V, W, RAD, MASS, INER, MAT, KIND = 0, slice(1, 4), slice(4, 7), slice(7, 10), 10, 11, \
     12, 13, 14
-F, T = slice(15, 18), slice(18, 21)
-NCOL = 21
+F, T, FE, FD, TD = slice(15, 18), slice(18, 21), slice(21, 24), slice(24, 27), slice(27, 30)
+NCOL = 30
 # contact history rows: global ids (pair: i < j; wall: particle, wall), spring (3), slip, energy
 HCOL = 7
+# the ledger's sums over steps (`Simulation._led` keys)
+_SUMS = ("dissipated", "friction", "gravity", "walls", "ghosts")
 
 
 # ---------------------------------------------------------------- ownership
@@ -67,11 +80,13 @@ class RecursiveBisection:
     nranks: int
 
     @classmethod
-    def from_points(cls, x, nranks: int) -> RecursiveBisection:
+    def from_points(cls, x, nranks: int, axes=(0, 1, 2)) -> RecursiveBisection:
         """Cuts giving each of ``nranks`` ranks (about) as many of the points x (n, 3) [m],
-        each cut normal to the longest axis of the box of the points it splits."""
+        each cut normal to the longest of ``axes`` of the box of the points it splits."""
         if not (isinstance(nranks, int | np.integer) and nranks >= 1):
             raise ValueError(f"nranks must be an int >= 1, got {nranks!r}")
+        allowed = np.zeros(3, bool)
+        allowed[list(axes)] = True
         x = np.asarray(x, float).reshape(-1, 3)
         nodes = []  # (axis, cut, below, above)
 
@@ -81,7 +96,7 @@ class RecursiveBisection:
             k = len(nodes)
             nodes.append(None)
             span = pts.max(axis=0) - pts.min(axis=0) if len(pts) else np.zeros(3)
-            ax = int(np.argmax(span))
+            ax = int(np.argmax(np.where(allowed, span, -1.0)))
             rm = (r0 + r1) // 2
             c = np.sort(pts[:, ax])
             m = int(round(len(c) * (rm - r0) / (r1 - r0)))
@@ -114,20 +129,39 @@ class RecursiveBisection:
         return -1 - node
 
 
+def _cut_axes(gravity):
+    """Axes the default bisection may cut normal to: under gravity not its own axis. Grains
+    fall and pile up along g, so a cut across g sees them migrate through it and leaves the
+    contacts (most of the work) on the rank below; cuts along g stay balanced."""
+    g = np.abs(np.asarray(gravity, float))
+    return (0, 1, 2) if not g.any() else tuple(a for a in range(3) if a != int(np.argmax(g)))
+
+
 # ---------------------------------------------------------------- kernels
 @njit(cache=True)
-def _pack_predicted(idx, x, v, omega, force, torque, mass, inertia, kind, g, h, dt, buf):
-    """Rows [x, v, omega] (9,) of particles idx after the next half-kick (h [s]) and drift
-    (dt [s]) of velocity Verlet: FREE particles as `Simulation.step` moves them (the same
-    operations in the same order, so the same bits), the others as prescribed now."""
+def _pack_predicted(idx, x, v, omega, force, torque, mass, inertia, kind, g, h, dt, kicks,
+                    head, buf):
+    """Rows [x, v, omega] (9,) of particles idx after ``kicks`` half-kicks (h [s]) with the
+    forces now and a drift (dt [s]): 1 between two steps, 2 from a step's force pass (its
+    second half-kick, then the next step's first). FREE particles as `Simulation.step`
+    moves them (the same operations in the same order, so the same bits), the others as
+    prescribed now. Rows of idx < 0 are headers: [head, 0, ...]."""
     for k in range(idx.shape[0]):
         i = idx[k]
+        if i < 0:
+            buf[k, :] = 0.0
+            buf[k, 0] = head
+            continue
         for c in range(3):
             if kind[i] == 0:
-                u = v[i, c] + h * (force[i, c] / mass[i] + g[c])
+                u = v[i, c]
+                w = omega[i, c]
+                for _ in range(kicks):
+                    u += h * (force[i, c] / mass[i] + g[c])
+                    w += h * torque[i, c] / inertia[i]
                 buf[k, c] = x[i, c] + dt * u
                 buf[k, 3 + c] = u
-                buf[k, 6 + c] = omega[i, c] + h * torque[i, c] / inertia[i]
+                buf[k, 6 + c] = w
             else:
                 buf[k, c], buf[k, 3 + c], buf[k, 6 + c] = x[i, c], v[i, c], omega[i, c]
 
@@ -136,6 +170,8 @@ def _pack_predicted(idx, x, v, omega, force, torque, mass, inertia, kind, g, h, 
 def _unpack(idx, buf, x, v, omega):
     for k in range(idx.shape[0]):
         i = idx[k]
+        if i < 0:  # a header
+            continue
         for c in range(3):
             x[i, c] = buf[k, c]
             v[i, c] = buf[k, 3 + c]
@@ -143,19 +179,25 @@ def _unpack(idx, buf, x, v, omega):
 
 
 @njit(cache=True)
-def _next_disp2(x, v, force, mass, kind, owned, g, h, dt, xref):
-    """Largest squared distance [m^2] of owned particles from xref after the next drift
-    (particles that are not FREE: after dt v, their prescribed motion)."""
+def _next_disp2(x, v, force, mass, kind, owned, g, h, dt, kicks, xref):
+    """Largest squared distance [m^2] of owned particles from xref after ``kicks``
+    half-kicks and the next drift (as `_pack_predicted` up to rounding: a criterion, not
+    a trajectory; particles that are not FREE: after dt v, their prescribed motion)."""
     d2 = 0.0
+    hk = kicks * h
     for i in range(x.shape[0]):
-        if not owned[i]:
+        if kind[i] == 0:  # FREE: owned (halo copies are GHOST)
+            a = hk / mass[i]
+            b0 = x[i, 0] + dt * (v[i, 0] + a * force[i, 0] + hk * g[0]) - xref[i, 0]
+            b1 = x[i, 1] + dt * (v[i, 1] + a * force[i, 1] + hk * g[1]) - xref[i, 1]
+            b2 = x[i, 2] + dt * (v[i, 2] + a * force[i, 2] + hk * g[2]) - xref[i, 2]
+        elif owned[i]:
+            b0 = x[i, 0] + dt * v[i, 0] - xref[i, 0]
+            b1 = x[i, 1] + dt * v[i, 1] - xref[i, 1]
+            b2 = x[i, 2] + dt * v[i, 2] - xref[i, 2]
+        else:
             continue
-        s = 0.0
-        for c in range(3):
-            u = v[i, c] + h * (force[i, c] / mass[i] + g[c]) if kind[i] == 0 else v[i, c]
-            a = x[i, c] + dt * u - xref[i, c]
-            s += a * a
-        d2 = max(d2, s)
+        d2 = max(d2, b0 * b0 + b1 * b1 + b2 * b2)
     return d2
 
 
@@ -202,12 +244,34 @@ def _agree(comm, error):
 
 # ---------------------------------------------------------------- the local run
 class _LocalSimulation(Simulation):
-    """`Simulation` of one rank's owned particles plus halo copies (GHOST). Its own blow-up
-    and domain checks are off: an error on one rank alone would leave the others waiting in
-    a collective call, so `DistributedSimulation` checks collectively."""
+    """`Simulation` of one rank's owned particles plus halo copies (GHOST; ``halo`` (n,)
+    bool marks them). Its own blow-up and domain checks are off: an error on one rank alone
+    would leave the others waiting in a collective call, so `DistributedSimulation` checks
+    collectively.
+
+    A halo copy is only there to act on owned particles: its contacts with other copies
+    and with the walls are dropped from the lists (their forces were never used, and its
+    wall contacts would book the owner's wall work twice), and its work is not booked as
+    the work of a ghost (the owner books the particle's work)."""
+
+    def __init__(self, particles, halo, *args, **kwargs):
+        self.halo = halo
+        super().__init__(particles, *args, check_every=1 << 62, **kwargs)
+        self._ghosts = np.flatnonzero((particles.kind == GHOST) & ~halo)
+        self._at = self._positions()
 
     def _check(self):
         pass
+
+    def _prune(self, nl):
+        keep = ~(self.halo[nl.pi] & self.halo[nl.pj])
+        if not keep.all():
+            nl.pi, nl.pj, nl.img = nl.pi[keep], nl.pj[keep], nl.img[keep]
+            nl.hist, nl.slip, nl.etan = nl.hist[keep], nl.slip[keep], nl.etan[keep]
+        keep = ~self.halo[nl.wi]
+        if not keep.all():
+            nl.wi, nl.ww = nl.wi[keep], nl.ww[keep]
+            nl.whist, nl.wslip, nl.wetan = nl.whist[keep], nl.wslip[keep], nl.wetan[keep]
 
 
 # ---------------------------------------------------------------- the distributed run
@@ -225,9 +289,11 @@ class DistributedSimulation:
             called collectively on each rank's owned particles at every decomposition
             (None: `RecursiveBisection` of the initial positions).
         skin: Verlet skin of the local neighbour lists [m] (default 0.2 r_max, as
-            `Simulation`). halo_skin: the decomposition's skin [m] (default = skin): halo
-            width 2 r_max + halo_skin; a new decomposition when a particle would move more
-            than halo_skin / 2 since the last one.
+            `Simulation`). halo_skin: the decomposition's skin [m] (default 2 x skin: a
+            decomposition costs a few neighbour builds, so it pays to have half as many for
+            a slightly wider halo): halo width 2 r_max + halo_skin; a new decomposition
+            when a particle would move more than halo_skin / 2 since the last one (one
+            rank: never, there is no halo).
 
     Attributes: ``local`` (this rank's `Simulation`, None if it holds no particle),
     ``owned`` (bool mask of its owned particles), ``gid`` (their global ids), ``time``,
@@ -251,11 +317,15 @@ class DistributedSimulation:
                                      allow_overlap, owner)
         self.owner = owner if owner is not None else self._bisection
         self.time, self.nsteps, self.decompositions, self.migrated = 0.0, 0, 0, 0
-        self._bank = {}  # works done in the local runs before the last decomposition
+        # this rank's share of the ledger sums over the local runs before the last
+        # decomposition, and of the spring energy the present run books but not this rank
+        self._bank = dict.fromkeys(_SUMS, 0.0)
+        self._unbooked0 = 0.0
         self.local, self._plan = None, None
         self._decompose(chunk)
-        # energy put in at t = 0 for the blow-up check (halo pairs count twice: a bound)
-        self._e0 = float(self.kinetic_energy().sum()) + self._sum("elastic")
+        t = self._totals()
+        self._e0 = t["kinetic_translational"] + t["kinetic_rotational"] + t["elastic"]
+        self._shadow0 = t["shadow"]
         self._good = None
         self._check()
 
@@ -277,7 +347,7 @@ class DistributedSimulation:
                 p.check_overlaps(allow=allow_overlap)
                 rmax = float(p.radius.max())
                 skin = 0.2 * rmax if skin is None else float(skin)
-                halo_skin = skin if halo_skin is None else float(halo_skin)
+                halo_skin = 2.0 * skin if halo_skin is None else float(halo_skin)
                 if not (skin >= 0 and halo_skin > 0):
                     raise ValueError(f"skin must be >= 0 m and halo_skin > 0 m, got "
                                      f"{skin!r}, {halo_skin!r}")
@@ -288,7 +358,7 @@ class DistributedSimulation:
                 rows[:, MAT], rows[:, KIND] = p.material, p.kind
                 blocks = np.array_split(rows, comm.size)
                 rcb = None if owner is not None else RecursiveBisection.from_points(
-                    p.x, comm.size)
+                    p.x, comm.size, _cut_axes(self.gravity))
                 info = (dt, rmax, skin, halo_skin, p.n, p.dim, rcb)
             except Exception as e:  # raised on every rank, not only here
                 err = e
@@ -311,6 +381,7 @@ class DistributedSimulation:
         rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius[oi], p.mass[oi], p.inertia[oi]
         rows[:, MAT], rows[:, KIND] = p.material[oi], p.kind[oi]
         rows[:, F], rows[:, T] = p.force[oi], p.torque[oi]
+        rows[:, FE], rows[:, FD], rows[:, TD] = s._fe[oi], s._fd[oi], s._td[oi]
         nl = s.nl
 
         def entries(i, j, hist, slip, etan):
@@ -341,11 +412,10 @@ class DistributedSimulation:
         else:
             self._check_domain()
             s = self.local
+            self._bank = self._sums()  # the ledger of this local run: banked
+            wf = self._wall_share()
             if s is not None:
                 oi, rows, (kp, pairs), (kw, wall) = self._owned_rows()
-                en = s.energy()  # works of this local run: banked
-                for k in ("work_gravity", "work_walls", "work_ghosts"):
-                    self._bank[k] = self._bank.get(k, 0.0) + en[k]
             else:
                 oi, rows, kp, kw = np.empty(0, np.int64), np.empty((0, NCOL)), [], []
                 pairs = wall = empty
@@ -367,7 +437,21 @@ class DistributedSimulation:
         own = _exchange_rows(comm, rows, new)
         halo = self._halo_rows(own)
         self._build_local(own, halo, pairs, wall, carried=chunk is None)
+        if chunk is None:
+            has = me if self.local is not None else comm.size
+            first = comm.allreduce(has, op=_mpi().MIN) if comm.size > 1 else has
+            if self.local is not None:
+                self.local._wf[:] = wf if me == first else 0.0
+        self._unbooked0 = self._unbooked_spring()
         self.decompositions += 1
+
+    def _wall_share(self):
+        """The wall resultants (nw, 9) of the last force pass (sum of the ranks' shares):
+        the next runs' trapezoidal wall work starts from them, all on the lowest rank that
+        holds particles (any split adds up to the same resultants)."""
+        nw = len(self.walls)
+        wf = np.zeros((nw, 9)) if self.local is None else self.local._wf.copy()
+        return self.comm.allreduce(wf) if self.comm.size > 1 and nw else wf
 
     def _halo_rows(self, own):
         """Copies of this rank's particles to the ranks whose owned box, inflated by the halo
@@ -401,9 +485,20 @@ class DistributedSimulation:
         scount = np.bincount(self._send_dest, minlength=comm.size).astype(np.int64)
         rcount = np.empty_like(scount)
         comm.Alltoall(scount, rcount)
-        send, recv = where[self._send_own], where[len(own):]
+        # each message to another rank opens with a header row (index -1): the sender's
+        # largest coming displacement, so one Alltoallv a step also decides collectively
+        # whether to decompose
+        others = np.arange(comm.size) != comm.rank
+
+        def with_heads(idx, count):
+            at = np.r_[0, np.cumsum(count)[:-1]][others]
+            return np.insert(idx, at, -1), count + others
+
+        send, scount = with_heads(where[self._send_own], scount)
+        recv, rcount = with_heads(where[len(own):], rcount)
         self._plan = (send, recv, _spec(np.empty((len(send), 9)), scount),
                       _spec(np.empty((len(recv), 9)), rcount), scount, rcount)
+        self._heads = np.flatnonzero(recv < 0)
         self.gid, self.owned = rows[:, GID].astype(np.int64), ~is_halo
         self._xref = rows[:, X].copy()
         if len(rows) == 0:
@@ -416,16 +511,19 @@ class DistributedSimulation:
         w = self.walls
         specs = [PlaneWall(tuple(w.point[k]), tuple(w.normal[k]), tuple(w.velocity[k]),
                            int(w.material[k])) for k in range(len(w))]
-        sim = _LocalSimulation(p, self.materials, specs, self.gravity, self.dt, force_dt=True,
-                               skin=self.skin, allow_overlap=True)
+        sim = _LocalSimulation(p, is_halo, self.materials, specs, self.gravity, self.dt,
+                               force_dt=True, skin=self.skin, allow_overlap=True)
         # the local run continues the walls exactly (a spec re-normalises the normal)
         for a in ("point", "normal", "velocity", "force"):
             getattr(sim.walls, a)[:] = getattr(w, a)
         self.walls, self.local = sim.walls, sim
         if carried:  # the constructor's force pass started from no history: replace it
             p.force[:], p.torque[:] = rows[:, F], rows[:, T]
-            sim.nl.build(p.x, p.radius, sim.walls.point, sim.walls.normal)
+            sim._fe[:], sim._fd[:], sim._td[:] = rows[:, FE], rows[:, FD], rows[:, TD]
             self._install_history(sim.nl, pairs, wall)
+            normal = sim._elastic - sim._spring  # a function of the positions only
+            sim._spring = float(sim.nl.etan.sum() + sim.nl.wetan.sum())
+            sim._elastic = normal + sim._spring
 
     def _install_history(self, nl, pairs, wall):
         """Contact history rows keyed by global ids into the neighbour list (pairs not
@@ -443,56 +541,88 @@ class DistributedSimulation:
                 setattr(nl, name, a)
 
     # ---------------------------------------------------------------- halo exchange
-    def _refresh(self):
-        """Owners' x, v, omega after the coming half-kick and drift into their halo copies
-        (collective, once per step): GHOST copies keep them through the local step."""
+    def _exchange(self, kicks: int) -> bool:
+        """Collective, once per step: True if the drift after ``kicks`` coming half-kicks
+        could carry an owned particle more than halo_skin / 2 from where the halos were
+        made (then decompose first); else the owners' x, v, omega after those half-kicks
+        and the drift are now in their halo copies (GHOST: kept through the local step)."""
         send, recv, sspec, rspec, _, _ = self._plan
-        s = self.local
+        s, d2 = self.local, 0.0
         if s is not None:
             p = s.p
+            d2 = _next_disp2(p.x, p.v, p.force, p.mass, p.kind, self.owned, self.gravity,
+                             0.5 * self.dt, self.dt, kicks, self._xref)
             _pack_predicted(send, p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia,
-                            p.kind, self.gravity, 0.5 * self.dt, self.dt, sspec[0])
+                            p.kind, self.gravity, 0.5 * self.dt, self.dt, kicks, d2,
+                            sspec[0])
+        else:
+            sspec[0][:] = 0.0  # headers only
         self.comm.Alltoallv(sspec, rspec)
+        d2 = max(d2, rspec[0][self._heads, 0].max(initial=0.0))
+        if d2 > (0.5 * self.halo_skin * (1.0 - 1e-9)) ** 2:  # (rounding of the estimate)
+            return True
         if s is not None:
             _unpack(recv, rspec[0], s.p.x, s.p.v, s.p.omega)
+        return False
 
     def _forward(self, values):
         """Int values (n_local,) of owned particles copied into their halo copies."""
         send, recv, _, _, sc, rc = self._plan
         rbuf = np.empty(len(recv))
-        self.comm.Alltoallv(_spec(values[send].astype(float), sc), _spec(rbuf, rc))
-        values[recv] = rbuf.astype(values.dtype)
+        sbuf = np.where(send >= 0, values[send], 0).astype(float)
+        self.comm.Alltoallv(_spec(sbuf, sc), _spec(rbuf, rc))
+        copy = recv >= 0
+        values[recv[copy]] = rbuf[copy].astype(values.dtype)
         return values
 
     # ---------------------------------------------------------------- stepping
     def step(self, n: int = 1):
         """Advance n steps of dt on every rank (collective)."""
-        for _ in range(int(n)):
-            if self._must_decompose():
-                self._decompose()
-                if self._must_decompose():
-                    raise TimeStepError(f"a particle moves more than halo_skin/2 = "
-                                        f"{0.5 * self.halo_skin:.4g} m in one step (dt = "
-                                        f"{self.dt:.4g} s): raise halo_skin or lower dt")
-            self._refresh()
-            if self.local is not None:
-                self.local.step(1)
-            else:
-                self.walls.advance(self.dt)
-            self.time += self.dt
-            self.nsteps += 1
+        n = int(n)
+        while n > 0:
+            k = min(n, self.check_every - self.nsteps % self.check_every)
+            while k > 0:
+                done = self._advance(k)
+                k, n = k - done, n - done
             if self.nsteps % self.check_every == 0:
                 self._check()
         if self.nsteps % self.check_every:
             self._check()
 
-    def _must_decompose(self) -> bool:
-        s, d2 = self.local, 0.0
-        if s is not None:
-            p = s.p
-            d2 = _next_disp2(p.x, p.v, p.force, p.mass, p.kind, self.owned, self.gravity,
-                             0.5 * self.dt, self.dt, self._xref)
-        return self.comm.allreduce(d2, op=_mpi().MAX) > (0.5 * self.halo_skin) ** 2
+    def _advance(self, n: int) -> int:
+        """Up to n steps in one call of the local run (one rank: all n; else until the
+        halo would go stale, then a decomposition); returns the steps done."""
+        if self.comm.size == 1:  # no halo, nothing to exchange or decompose
+            done = self.local.step(n)
+        else:
+            if self._exchange(1):
+                self._decompose()
+                if self._exchange(1):
+                    raise TimeStepError(f"a particle moves more than halo_skin/2 = "
+                                        f"{0.5 * self.halo_skin:.4g} m in one step (dt = "
+                                        f"{self.dt:.4g} s): raise halo_skin or lower dt")
+            self._left = n
+            if self.local is not None:
+                done = self.local.step(n, hook=self._between_steps)
+            else:
+                done = n
+                for k in range(n):
+                    self.walls.advance(self.dt)
+                    if self._between_steps():
+                        done = k + 1
+                        break
+        for _ in range(done):
+            self.time += self.dt
+        self.nsteps += done
+        return done
+
+    def _between_steps(self) -> bool:
+        """`Simulation.step` hook, after each force pass (collective): True to end the
+        local call after this step (the next drift could carry a particle beyond the halo);
+        else the halo copies as the next step's drift will make them. The last step of a
+        call does neither: the next call decides and refreshes from the state it ends in."""
+        self._left -= 1
+        return self._left > 0 and self._exchange(2)
 
     # ---------------------------------------------------------------- results (collective)
     def kinetic_energy(self) -> np.ndarray:
@@ -500,20 +630,73 @@ class DistributedSimulation:
         k = np.zeros(2) if self.local is None else self.local.kinetic_energy()
         return self.comm.allreduce(k)
 
-    def _sum(self, key) -> float:
-        v = 0.0 if self.local is None else float(self.local.energy()[key])
-        return float(self.comm.allreduce(v + self._bank.get(key, 0.0)))
+    def _unbooked_spring(self) -> float:
+        """Spring energy [J] of the local pairs whose lower id is a halo copy: their owner
+        books them (a pair across two ranks is computed on both)."""
+        if self.local is None:
+            return 0.0
+        nl = self.local.nl
+        return float(nl.etan[~self.owned[nl.pi]].sum())
+
+    def _unbooked_elastic(self) -> float:
+        """Elastic energy [J] (normal + spring) of the pairs `_unbooked_spring` names, at the
+        last force pass: the normal part evaluated again (it depends on the positions only)
+        on copies of the history, the spring part as stored."""
+        s = self.local
+        nl = s.nl
+        k = np.flatnonzero(~self.owned[nl.pi])
+        if len(k) == 0:
+            return 0.0
+        p = s.p
+        out = np.zeros((len(k), NOUT))
+        acc = [np.zeros_like(p.force) for _ in range(5)]
+        pair_forces(nl.pi[k], nl.pj[k], p.x, p.v, p.omega, p.radius, p.mass, p.material,
+                    s.table, nl.hist[k], nl.slip[k], nl.etan[k], s.dt, out, *acc, rows=True)
+        return float((out[:, 18] - out[:, 22]).sum() + nl.etan[k].sum())
+
+    def _sums(self) -> dict:
+        """This rank's share of the ledger's sums over the steps so far [J] (`_SUMS`):
+        its local runs' ledgers, the dissipation corrected by the change of the spring
+        energy another rank books (the local run booked it as its own)."""
+        out, s = dict(self._bank), self.local
+        if s is not None:
+            c = self._unbooked_spring() - self._unbooked0
+            for k in _SUMS:
+                out[k] += s._led[k] + (c if k in ("dissipated", "friction") else 0.0)
+        return out
+
+    def _totals(self, elastic: bool = True) -> dict:
+        """Collective: kinetic (translational, rotational), elastic (0 unless ``elastic``),
+        shadow and `_SUMS`, summed over the ranks [J]."""
+        s, sums = self.local, self._sums()
+        kt = kr = el = sh = 0.0
+        if s is not None:
+            kt, kr = s.kinetic_energy()
+            sh = s._shadow()
+            el = s._elastic - self._unbooked_elastic() if elastic else 0.0
+        v = np.array([kt, kr, el, sh] + [sums[k] for k in _SUMS])
+        if self.comm.size > 1:
+            v = self.comm.allreduce(v)
+        keys = ("kinetic_translational", "kinetic_rotational", "elastic", "shadow") + _SUMS
+        return dict(zip(keys, (float(a) for a in v), strict=True))
 
     def energy(self) -> dict:
-        """The global energies that split exactly by owner [J]: kinetic
-        (translational, rotational) and the work of gravity on all FREE particles.
+        """The ledger of `Simulation.energy` (the same keys) of the whole run [J].
 
-        The rest of the `Simulation.energy` ledger (elastic, dissipated, walls, ghosts) is
-        not offered: a local run books a pair across ranks on both ranks and its halo
-        copies' wall contacts, and the public API gives no per-contact split."""
-        kt, kr = self.kinetic_energy()
-        return dict(kinetic_translational=float(kt), kinetic_rotational=float(kr),
-                    work_gravity=self._sum("work_gravity"))
+        Each rank books its owned particles' kinetic energy, shadow and works, its walls'
+        share of the wall contacts (a halo copy has none) and the pairs whose lower id it
+        owns (a pair across two ranks is computed on both). Agrees with the serial run to
+        round-off (sums in another order)."""
+        t = self._totals()
+        stored = (t["kinetic_translational"] + t["kinetic_rotational"] - t["shadow"]
+                  + t["elastic"] + t["dissipated"])
+        work = t["gravity"] + t["walls"] + t["ghosts"]
+        return dict(kinetic_translational=t["kinetic_translational"],
+                    kinetic_rotational=t["kinetic_rotational"], elastic=t["elastic"],
+                    dissipated_damping=t["dissipated"] - t["friction"],
+                    dissipated_friction=t["friction"], work_gravity=t["gravity"],
+                    work_walls=t["walls"], work_ghosts=t["ghosts"], shadow=t["shadow"],
+                    initial=self._e0, balance=stored - work - (self._e0 - self._shadow0))
 
     def gather(self, root: int = 0) -> dict | None:
         """On ``root``: x, v, omega, force, torque (N, 3) in global-id order and ``rank``
@@ -551,14 +734,14 @@ class DistributedSimulation:
     def _check(self):
         """Collective blow-up check (NaN, or kinetic energy above blowup_factor x the energy
         put in); on failure rank 0 writes the last good state, gathered."""
-        s = self.local
-        finite = s is None or all(np.isfinite(a).all() for a in (s.p.x, s.p.v, s.p.omega))
-        ok = finite = bool(self.comm.allreduce(int(finite), op=_mpi().MIN))
-        if finite:
-            ke = float(self.kinetic_energy().sum())
-            budget = self._e0 + sum(abs(self._sum(k)) for k in ("work_gravity", "work_walls",
-                                                                 "work_ghosts"))
-            ok = ke <= self.blowup_factor * budget + 1e-300
+        s, sums = self.local, self._sums()
+        ke, finite = (0.0, True) if s is None else _kinetic_finite(
+            s.p.x, s.p.v, s.p.omega, s.p.mass, s.p.inertia, s.p.kind)
+        v = np.array([ke, float(not finite), sums["gravity"], sums["walls"], sums["ghosts"]])
+        if self.comm.size > 1:
+            v = self.comm.allreduce(v)
+        ke, finite = v[0], v[1] == 0.0
+        ok = finite and ke <= self.blowup_factor * (self._e0 + np.abs(v[2:]).sum()) + 1e-300
         if not ok:
             why = "NaN in x, v or omega" if not finite else "kinetic energy jump"
             good = self.comm.gather(self._good, root=0)
@@ -571,5 +754,6 @@ class DistributedSimulation:
                               f"(dt = {self.dt:.4g} s); last good state written to "
                               f"{self.state_path}", self.state_path)
         self._check_domain()
-        self._good = np.empty((0, NCOL)) if s is None else self._owned_rows()[1]
+        self._good = np.empty((0, 10)) if s is None else np.column_stack(
+            [self.gid, s.p.x, s.p.v, s.p.omega])[self.owned]  # columns GID, X, V, W
         self._good_at = (self.time, self.nsteps)
