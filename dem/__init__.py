@@ -6,6 +6,7 @@ Public API: `Particles` (FREE, GHOST, FIXED kinds), `ContactMaterial`, `PlaneWal
 the named errors.
 """
 
+from dem import threads  # noqa: F401  (the threading layer, before any kernel launches)
 from dem.contact import LAWS, ContactMaterial
 from dem.control import ServoWall, relax, unbalanced_force_ratio
 from dem.errors import (BlowUpError, DemError, DomainError, MaterialError, OverlapError,

@@ -5,9 +5,11 @@ its integer id (``apply_law``: an integer switch, not a function argument, so nu
 cache works). Two drivers share the per-contact code:
 
 - rows: per-contact results go to rows of ``out`` in a ``prange`` loop, then a serial
-  scatter (or, over the compact layout, a parallel per-particle `_gather`) sums them
-  onto particles in contact order (used from ``PARALLEL_MIN`` candidate pairs on when
-  numba runs more than one thread, and whenever the caller wants the rows);
+  scatter (or, over the compact layout, a parallel per-particle `_gather` that visits
+  only particles with a touching contact) sums them onto particles in contact order
+  (used from ``PARALLEL_MIN`` candidate pairs on when numba runs more than one thread,
+  and whenever the caller wants the rows); wall contacts likewise (`_wall_rows`, then a
+  serial scatter in candidate order) from ``WALL_PARALLEL_MIN`` candidates on;
 - fused: one serial loop that resolves a contact into a scratch row and scatters it at
   once (no m x NOUT array streamed through memory twice).
 
@@ -45,12 +47,11 @@ from dem.contact.kinematics import (pair_kinematics, periodic_pair_kinematics, p
 from dem.contact.linear import linear_force
 
 NOUT = 23
-PARALLEL_MIN = 1 << 62
+PARALLEL_MIN = 4096
 """Candidate pairs from which, with more than one numba thread, the ``prange`` drivers run
-(rows, then `_gather` or `_scatter`). Off by default: on the project's 2-vCPU machine the
-serial fused loop was faster at 2 threads (settle scene, 10k and 50k particles: 18.0 vs
-14.3 and 18.5 vs 12.4 M particle-steps/s); set it (e.g. 4096) where threads pay off.
-Results are the same bits either way."""
+(rows in chunks spread over the threads, then `_gather`). Settle scene (benchmarks/
+dem_throughput.py), 2 threads on the 2-vCPU machine: see its results.json. The results are
+the same bits whatever the driver and the thread count."""
 
 __all__ = ["NOUT", "PARALLEL_MIN", "apply_law", "pair_forces", "pair_layout", "refresh_live",
            "wall_forces"]
@@ -330,13 +331,29 @@ def _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table, his
     return e, es
 
 
-@njit(parallel=True, cache=True)
-def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist, slip,
-                   etan, dt, out):
-    """`_pair_rows` without a cell over the compact layout (``prange`` over particles i;
-    each contact belongs to one i, so no two threads write the same row). Rows with
-    live[k] = 0 afterwards are open and left unwritten (`_gather` skips them)."""
-    for i in prange(start.shape[0] - 1):
+ROWS_CHUNK = 128
+"""Particles per chunk of `_pair_rows_csr`."""
+SPREAD = 7919
+"""A prime: ``prange`` task b works on chunk ``spread(b, nchunk)``, so that the contiguous
+blocks of tasks a static schedule gives each thread cover chunks from all over the
+particle range (contacts cluster where the grains are loaded, e.g. at the bottom of a
+settling bed: contiguous halves would leave one thread idle)."""
+
+
+@njit(cache=True, inline="always")
+def spread(b, nchunk):
+    """Chunk of task b of nchunk: a permutation of range(nchunk) that strides by SPREAD."""
+    b = np.int64(b)  # a prange index may be unsigned: int64 arithmetic, not float
+    if nchunk % SPREAD == 0:
+        return b
+    return (b * SPREAD) % np.int64(nchunk)
+
+
+@njit(cache=True)
+def _rows_range(lo, hi, start, pj32, live, x, v, omega, radius, mass, material, table, hist,
+                slip, etan, dt, out, touched):
+    """The rows of the pairs of particles lo:hi (see `_pair_rows_csr`)."""
+    for i in range(lo, hi):
         xi0 = x[i, 0]
         xi1 = x[i, 1]
         xi2 = x[i, 2]
@@ -357,25 +374,51 @@ def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table
             _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
                      omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
                      omega[i, 2] - omega[j, 2], out[k])
+            if out[k, 18] != 0.0:
+                # two threads may store this same byte: the value is the same
+                touched[i] = 1
+                touched[j] = 1
 
 
-GATHER_CHUNK = 512
+@njit(parallel=True, cache=True)
+def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist, slip,
+                   etan, dt, out, touched):
+    """`_pair_rows` without a cell over the compact layout, in chunks of ROWS_CHUNK
+    particles i spread over the threads (each contact belongs to one i, so no two threads
+    write the same row). Rows with live[k] = 0 afterwards are open and left
+    unwritten (`_gather` skips them). touched (n,) int8, zero on entry: set to 1 for both
+    particles of every touching contact (so that `_gather` skips the others without
+    looking at their pairs)."""
+    n = start.shape[0] - 1
+    nchunk = (n + ROWS_CHUNK - 1) // ROWS_CHUNK
+    for b in prange(nchunk):
+        c = spread(b, nchunk)
+        _rows_range(c * ROWS_CHUNK, min(n, (c + 1) * ROWS_CHUNK), start, pj32, live, x, v,
+                    omega, radius, mass, material, table, hist, slip, etan, dt, out, touched)
+
+
+GATHER_CHUNK = 256
 """Particles per task of `_gather` (fixed: its energy sums do not depend on threads)."""
 
 
 @njit(parallel=True, cache=True)
-def _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part):
+def _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part, touched):
     """Parallel, deterministic form of `_scatter` over the compact layout: each particle p
     sums its rows itself, first those where it is j (ascending i), then those where it is
     i (ascending j): the order in which `_scatter` adds them, so the same bits whatever the
     threads. part (nchunk, 2) receives the elastic and spring energies of the rows of the
-    particles of each chunk of GATHER_CHUNK (summed by the caller in chunk order)."""
+    particles of each chunk of GATHER_CHUNK (summed by the caller in chunk order). Only
+    particles flagged in touched (by `_pair_rows_csr`) are visited; the flags are cleared."""
     n = start.shape[0] - 1
     nchunk = part.shape[0]
-    for b in prange(nchunk):
+    for t in prange(nchunk):
+        b = spread(t, nchunk)
         e = 0.0
         es = 0.0
         for p in range(b * GATHER_CHUNK, min(n, (b + 1) * GATHER_CHUNK)):
+            if touched[p] == 0:
+                continue
+            touched[p] = 0
             for q in range(jstart[p], jstart[p + 1]):
                 k = jrow[q]
                 if live[k] == 0 or out[k, 18] == 0.0:
@@ -401,6 +444,17 @@ def _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part
                 es += out[k, 22]
         part[b, 0] = e
         part[b, 1] = es
+
+
+_TOUCHED = [np.zeros(0, np.int8)]
+
+
+def _touched(n):
+    """Zeroed (n,) int8 scratch flags for `_pair_rows_csr` / `_gather` (kept zero between
+    calls: `_gather` clears what it reads)."""
+    if _TOUCHED[0].shape[0] != n:
+        _TOUCHED[0] = np.zeros(n, np.int8)
+    return _TOUCHED[0]
 
 
 def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
@@ -431,12 +485,15 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
                        dt, per, h, lg, img, out)
         else:
             start, pj32, live, jstart, jrow = layout
+            touched = _touched(x.shape[0])
             _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist,
-                           slip, etan, dt, out)
+                           slip, etan, dt, out, touched)
             if not rows and hit.shape[0] == x.shape[0]:
                 part = np.empty(((x.shape[0] + GATHER_CHUNK - 1) // GATHER_CHUNK, 2))
-                _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part)
+                _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part,
+                        touched)
                 return float(part[:, 0].sum()), float(part[:, 1].sum())
+            touched[:] = 0
             out[np.flatnonzero(live == 0), 18] = 0.0  # open rows, as `_scatter` reads them
         return _scatter(pi, pj, out, force, torque, fe, fd, td, hit)
     if layout is not None:
@@ -488,6 +545,64 @@ def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_
     return e, es
 
 
+@njit(cache=True)
+def _wall_rows_range(lo, hi, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n,
+                     wall_u, wall_mat, table, hist, slip, etan, dt, out):
+    for k in range(lo, hi):
+        i = wi[k]
+        w = ww[k]
+        if radius[i] - ((x[i, 0] - wall_p[w, 0]) * wall_n[w, 0]
+                        + (x[i, 1] - wall_p[w, 1]) * wall_n[w, 1]
+                        + (x[i, 2] - wall_p[w, 2]) * wall_n[w, 2]) <= 0.0:
+            _release(k, hist, slip, etan)
+            out[k, 18] = 0.0
+            continue
+        _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
+                  wall_mat, table, hist, slip, etan, dt, out[k])
+
+
+WALL_CHUNK = 256
+"""Wall candidates per task of `_wall_rows`."""
+
+
+@njit(parallel=True, cache=True)
+def _wall_rows(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u, wall_mat,
+               table, hist, slip, etan, dt, out):
+    """Rows of all wall candidates (out[k, 18] = 0 for open ones), chunks over threads."""
+    m = wi.shape[0]
+    nchunk = (m + WALL_CHUNK - 1) // WALL_CHUNK
+    for t in prange(nchunk):
+        b = spread(t, nchunk)
+        _wall_rows_range(b * WALL_CHUNK, min(m, (b + 1) * WALL_CHUNK), wi, ww, x, v, omega,
+                         radius, mass, material, wall_p, wall_n, wall_u, wall_mat, table, hist,
+                         slip, etan, dt, out)
+
+
+@njit(cache=True)
+def _wall_scatter(wi, ww, out, force, torque, fe, fd, td, wall_f, hit):
+    """The touching rows of `_wall_rows` onto particles and walls in candidate order (the
+    additions of `_wall_all`, so the same bits)."""
+    e = 0.0
+    es = 0.0
+    for k in range(wi.shape[0]):
+        row = out[k]
+        if row[18] == 0.0:
+            continue
+        _scatter_row(wi[k], -1, row, force, torque, fe, fd, td, hit)
+        w = ww[k]
+        for c in range(3):
+            wall_f[w, c] += row[c]
+            wall_f[w, 3 + c] += row[19 + c]
+            wall_f[w, 6 + c] += row[9 + c]
+        e += row[18]
+        es += row[22]
+    return e, es
+
+
+WALL_PARALLEL_MIN = 1024
+"""Wall candidates from which, with more than one numba thread, `_wall_rows` runs."""
+
+
 def wall_forces(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
                 wall_mat, table, hist, slip, etan, dt, out, force, torque, fe, fd, td,
                 wall_f, hit=None):
@@ -497,6 +612,11 @@ def wall_forces(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wal
     wall_f[:] = 0.0
     if wi.shape[0] == 0:
         return 0.0, 0.0
+    hit = _NOHIT if hit is None else hit
+    if wi.shape[0] >= WALL_PARALLEL_MIN and get_num_threads() > 1:
+        _wall_rows(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
+                   wall_mat, table, hist, slip, etan, dt, out)
+        return _wall_scatter(wi, ww, out, force, torque, fe, fd, td, wall_f, hit)
     return _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
                      wall_mat, table, hist, slip, etan, dt, out, force, torque, fe, fd, td,
-                     wall_f, _NOHIT if hit is None else hit)
+                     wall_f, hit)

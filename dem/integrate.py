@@ -17,7 +17,8 @@ from numba import get_num_threads, njit, prange
 
 from dem.contact import ContactMaterial, pair_table
 from dem.errors import BlowUpError, DomainError, OverlapError
-from dem.forces import NO_CELL, NOUT, pair_forces, pair_layout, refresh_live, wall_forces
+from dem.forces import (NO_CELL, NOUT, pair_forces, pair_layout, refresh_live, spread,
+                         wall_forces)
 from dem.neighbours import NeighbourList
 from dem.state import FREE, GHOST
 from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
@@ -214,12 +215,11 @@ def _kick_drift_range(lo, hi, x, v, omega, force, torque, fe, fd, td, mass, iner
     res[7] = d2
 
 
-KD_CHUNK = 2048
+KD_CHUNK = 512
 """Particles per task of `_kick_drift_par` (fixed: its sums do not depend on threads)."""
-KD_PARALLEL_MIN = 1 << 62
-"""Particles from which, with more than one numba thread, `_kick_drift_par` runs. Off by
-default: slower than the serial pass on the project's 2-vCPU machine (memory-bound; see
-`dem.forces.PARALLEL_MIN`)."""
+KD_PARALLEL_MIN = 4096
+"""Particles from which, with more than one numba thread, `_kick_drift_par` runs (below, a
+thread rendezvous costs more than the pass; see `dem.forces.PARALLEL_MIN`)."""
 
 
 @njit(cache=True)
@@ -239,7 +239,8 @@ def _kick_drift_par(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind,
     n = x.shape[0]
     nb = (n + KD_CHUNK - 1) // KD_CHUNK
     part = np.zeros((nb, 8))
-    for b in prange(nb):
+    for t in prange(nb):
+        b = spread(t, nb)  # loaded and idle grains shared out (see `dem.forces.SPREAD`)
         _kick_drift_range(b * KD_CHUNK, min(n, (b + 1) * KD_CHUNK), x, v, omega, force,
                           torque, fe, fd, td, mass, inertia, kind, g, h, dt, per, lg, org, x0,
                           hit, part[b])
@@ -358,7 +359,9 @@ class Simulation:
         self.time, self.nsteps = 0.0, 0
         self._ghosts = np.flatnonzero(particles.kind == GHOST)
         n = particles.n
-        self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0)
+        self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0,
+                         cell=0.0)
+        self._bf = self._bf_prev = np.zeros((3, 3, 3))  # contact sums b (x) f (`_stress_sums`)
         self._fe, self._fd, self._td = (np.zeros((n, 3)) for _ in range(3))
         self._hit = np.zeros(n, np.int8)  # particles with a contact in the last force pass
         self._lay = (None, None)  # ((pair arrays it was made from), dem.forces.pair_layout)
@@ -420,14 +423,26 @@ class Simulation:
         if self._out.shape[0] < m:
             self._out = np.empty((int(1.2 * m) + 16, NOUT))
         cell = NO_CELL if self.cell is None else self.cell.as_kernel_args(nl.img)
+        rows = self.cell is not None and update_history  # (the same bits as without rows)
         e1, s1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell,
-                             hit=self._hit, layout=lay)
+                             hit=self._hit, layout=lay, rows=rows)
+        if rows:
+            self._bf_prev, self._bf = self._bf, self._stress_sums(len(nl.pi))
         e2, s2 = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              w.point, w.normal, w.velocity, w.material, self.table, h[3],
                              h[4], h[5], self.dt, self._out, *acc, self._wf, hit=self._hit)
         w.force[:] = self._wf[:, :3]
         return e1 + e2, s1 + s2
+
+    def _stress_sums(self, m):
+        """sum over the touching pairs of b (x) f for f the contact force on i by j, its
+        conservative normal part and its damping part (3, 3, 3) [N m] (b: branch vector
+        from i to j's image), from the rows (m, NOUT) of the force pass just done."""
+        out = self._out[:m]
+        t = out[:, 18] != 0.0
+        b = self._branches()[t]
+        return np.stack([-b.T @ out[t, c:c + 3] for c in (0, 19, 9)])
 
     def _prune(self, nl):
         """Called after every neighbour build, before the force pass: a subclass may drop
@@ -548,14 +563,20 @@ class Simulation:
         www = wwe = wwd = 0.0  # work of the contacts on the walls (all, fe, fd)
         if len(self.walls):
             www, wwe, wwd = _wall_work(self._wf_prev, self._wf, wp0, wp1)
-        contact = wc + wgh + www
-        dissipated = -(contact - (we + wge + wwe)) - (es - self._spring)
-        damping = -(wd + wgd + wwd)
+        wcell = np.zeros(3)  # work of the cell on the contacts (all, fe, fd)
+        if self.cell is not None:
+            # the contacts' share of the affine motion (f . L b dt a pair), trapezoidal
+            lt = self.cell.velocity_gradient.T
+            wcell = 0.5 * self.dt * ((self._bf_prev + self._bf) * lt).sum(axis=(1, 2))
+        contact = wc + wgh + www - wcell[0]
+        dissipated = -(contact - (we + wge + wwe - wcell[1])) - (es - self._spring)
+        damping = -(wd + wgd + wwd - wcell[2])
         led["dissipated"] += dissipated
         led["friction"] += dissipated - damping
         led["walls"] -= www
         led["ghosts"] -= wgh
         led["gravity"] += wg
+        led["cell"] += wcell[0]
         self._elastic, self._spring = e, es
     def _branches(self):
         """Branch vectors (m, 3) [m] from i to (the nearest image of) j of the listed pairs."""
@@ -612,24 +633,27 @@ class Simulation:
         the tangential dashpots while sticking), dissipated_friction (the rest of the
         contact work that is not stored elastically: Coulomb sliding, rolling resistance,
         spring energy lost on sliding, opening and stiffness changes), work_gravity,
-        work_walls, work_ghosts (work done on the particles), shadow (sum dt^2/(8m)|F|^2 +
-        dt^2/(8I)|T|^2, the velocity Verlet term), initial (kinetic + elastic at the
-        start) and ``balance`` = kinetic - shadow + elastic + dissipated - work -
-        (initial - initial shadow). Every work is taken by the
-        trapezoidal rule over the actual displacements, for which velocity Verlet closes
-        the kinetic part exactly: the balance is the time error of the conservative normal
-        forces only (and, in a deforming periodic cell, minus the work of the cell,
-        which is not booked)."""
+        work_walls, work_ghosts (work done on the particles), work_cell (in a deforming
+        periodic cell: the work of the affine motion on the contacts, sum f . L b dt over
+        the pairs = V sigma : L dt, sigma the Love-Weber stress; 0 without a cell), shadow
+        (sum dt^2/(8m)|F|^2 + dt^2/(8I)|T|^2, the velocity Verlet term), initial (kinetic +
+        elastic at the start) and ``balance`` = kinetic - shadow + elastic + dissipated -
+        work - (initial - initial shadow). Every work is taken by the trapezoidal rule over
+        the actual displacements, for which velocity Verlet closes the kinetic part
+        exactly: the balance is the time error of the conservative normal forces only
+        (the cell work takes the stress at the two force passes of a step with the branch
+        vectors each had, a further error of second order in dt a step)."""
         kt, kr = self.kinetic_energy()
         led = self._led
         sh = self._shadow()
         stored = kt + kr - sh + self._elastic + led["dissipated"]
-        work = led["gravity"] + led["walls"] + led["ghosts"]
+        work = led["gravity"] + led["walls"] + led["ghosts"] + led["cell"]
         return dict(kinetic_translational=kt, kinetic_rotational=kr, elastic=self._elastic,
                     dissipated_damping=led["dissipated"] - led["friction"],
                     dissipated_friction=led["friction"],
                     work_gravity=led["gravity"], work_walls=led["walls"],
-                    work_ghosts=led["ghosts"], shadow=sh, initial=self._e0,
+                    work_ghosts=led["ghosts"], work_cell=led["cell"], shadow=sh,
+                    initial=self._e0,
                     balance=stored - work - (self._e0 - self._shadow0))
 
     def _check_cell_overlaps(self, allow: bool):

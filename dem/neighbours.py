@@ -260,13 +260,41 @@ def brute_force_pairs(x, radius, skin: float):
     return i.astype(np.int64), j.astype(np.int64)
 
 
+@njit(cache=True)
+def _wall_candidates(x, radius, wall_p, wall_n, skin):
+    nw = wall_p.shape[0]
+    off = np.empty(nw)
+    for w in range(nw):
+        off[w] = wall_p[w, 0] * wall_n[w, 0] + wall_p[w, 1] * wall_n[w, 1] \
+            + wall_p[w, 2] * wall_n[w, 2]
+    near = np.empty((x.shape[0], nw), np.bool_)
+    m = 0
+    for i in range(x.shape[0]):
+        for w in range(nw):
+            d = x[i, 0] * wall_n[w, 0] + x[i, 1] * wall_n[w, 1] + x[i, 2] * wall_n[w, 2] \
+                - off[w]
+            near[i, w] = d < radius[i] + skin
+            m += near[i, w]
+    wi = np.empty(m, np.int64)
+    ww = np.empty(m, np.int64)
+    k = 0
+    for i in range(x.shape[0]):
+        for w in range(nw):
+            if near[i, w]:
+                wi[k] = i
+                ww[k] = w
+                k += 1
+    return wi, ww
+
+
 def wall_candidates(x, radius, wall_p, wall_n, skin: float):
-    """(particle, wall) pairs (int64, (m,) each) with distance to the plane < r + skin."""
+    """(particle, wall) pairs (int64, (m,) each) with distance to the plane < r + skin,
+    ordered by particle, then wall."""
     if wall_p.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
-    dist = x @ wall_n.T - (wall_p * wall_n).sum(axis=1)[None, :]  # (n, nw) [m]
-    i, w = np.nonzero(dist < radius[:, None] + skin)
-    return i.astype(np.int64), w.astype(np.int64)
+    return _wall_candidates(np.ascontiguousarray(x, float), np.ascontiguousarray(radius, float),
+                            np.ascontiguousarray(wall_p, float),
+                            np.ascontiguousarray(wall_n, float), float(skin))
 
 
 @njit(cache=True)

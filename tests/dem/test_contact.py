@@ -101,7 +101,7 @@ SCRIPT = textwrap.dedent("""
     import sys, numpy as np, numba, dem
     numba.set_num_threads(int(sys.argv[1]))
     from dem import forces, integrate, neighbours
-    forces.PARALLEL_MIN = integrate.KD_PARALLEL_MIN = 4096  # the prange drivers (off by default)
+    forces.PARALLEL_MIN = integrate.KD_PARALLEL_MIN = 4096  # the prange drivers' defaults
     rng = np.random.default_rng(3)
     g = np.stack(np.meshgrid(*[np.arange(17)] * 3, indexing="ij"), -1).reshape(-1, 3)
     x = (g + 0.5) * 2.05e-3 + rng.uniform(-2e-5, 2e-5, g.shape)
@@ -111,7 +111,8 @@ SCRIPT = textwrap.dedent("""
     sim = dem.Simulation(p, mat, dem.box_walls((0, 0, 0), (0.035,) * 3), (0, 0, -9.81))
     sim.step(60)
     np.save(sys.argv[2], np.concatenate([p.x, p.v, p.omega, p.force]))
-    kernels = [forces._pair_rows_csr, forces._gather, forces.pair_layout, forces._wall_all,
+    kernels = [forces._pair_rows_csr, forces._gather, forces.pair_layout, forces._wall_rows,
+               forces._wall_scatter,
                integrate._drift, integrate._kick, integrate._kick_drift_par,
                neighbours._pairs_ser]
     print(sum(sum(k.stats.cache_misses.values()) for k in kernels),
@@ -121,8 +122,8 @@ SCRIPT = textwrap.dedent("""
 
 def test_cache_and_thread_determinism(tmp_path):
     """A second process loads every kernel from numba's disk cache (no compilation), and
-    1 and 2 threads give bit-identical states (4913 particles, the thresholds of the
-    parallel drivers lowered: serial kernels on 1 thread, parallel ones on 2)."""
+    1 and 2 threads give bit-identical states (4913 particles: serial kernels on 1 thread,
+    the parallel drivers of pairs, walls and kick-drift on 2)."""
     script = tmp_path / "run.py"
     script.write_text(SCRIPT)
     env = dict(os.environ, PYTHONPATH=os.getcwd())
