@@ -11,28 +11,6 @@ import sys
 from pathlib import Path
 
 
-def _share_cores():
-    """Numba threads per rank = this node's cores / this node's ranks, unless
-    NUMBA_NUM_THREADS says otherwise (collective). Two ranks forking two threads each on
-    two cores make every parallel region of the DEM wait for a descheduled thread: the
-    settle benchmark fell from ~10 to ~1 M particle-steps/s."""
-    import os
-
-    if "NUMBA_NUM_THREADS" in os.environ:
-        return
-    from mpi4py import MPI
-
-    node = MPI.COMM_WORLD.Split_type(MPI.COMM_TYPE_SHARED)
-    ranks = node.size
-    node.Free()
-    import numba
-
-    # mpiexec may bind a rank to one core: count the cores it may run on
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else \
-        (os.cpu_count() or 1)
-    numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS, cores // ranks)))
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="granfe", description="DE x micropolar FE coupled scenes")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -63,7 +41,6 @@ def main(argv: list[str] | None = None) -> int:
         from coupling.runner import summarise
         print(json.dumps({"scene": str(args.scene), "valid": True, **summarise(scene)}, indent=2))
         return 0
-    _share_cores()
     if args.command == "run" and scene.scene.kind == "penetration":
         return _run_penetration(scene, args)
     if args.command == "restart":
