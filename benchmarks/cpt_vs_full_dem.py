@@ -12,10 +12,11 @@ error of its average are reported beside it: the floor below which an error mean
 Run times are mean wall times per run of set-up (settling) and push.
 
 3D strong scaling: the reduced 3D coupled cone scene (a few thousand spheres) is run with
-``mpiexec -n 1`` and ``-n 2`` (``NUMBA_NUM_THREADS=1``), each ``--scaling-repeats`` times;
+``mpiexec -n 1`` and ``-n 2`` (``NUMBA_NUM_THREADS=1``), each ``--scaling-repeats`` times,
+and on 1 rank with 2 numba threads (the DEM threaded, the FE serial);
 the figure is the wall time per FE step (min and median over the timed steps of all
-repeats), with the DEM part of it (the grains are replicated on every rank, so only the FE
-solve and the exchange can scale).
+repeats), with the DEM part of it (the grains are replicated on every rank, so across ranks
+only the FE solve and the exchange can scale; across threads only the DEM).
 
 Writes ``results.json`` and ``cpt_vs_full_dem.png`` (q_c curves, the error-time front, the
 scaling line). ``--parts scaling`` runs only the 3D line and keeps the 2D entries of an
@@ -53,6 +54,8 @@ parser.add_argument("--seeds", type=int, default=1 if SHORT else 3,
                     help="packings per configuration: errors are between seed-averaged curves")
 parser.add_argument("--parts", choices=["all", "2d", "scaling"], default="all")
 parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2], help="rank counts of the 3D line")
+parser.add_argument("--hybrid-threads", type=int, default=2,
+                    help="also run 1 rank with this many numba threads (0: not)")
 parser.add_argument("--scaling-steps", type=int, default=4 if SHORT else 12, help="FE steps timed per run")
 parser.add_argument("--scaling-repeats", type=int, default=1 if SHORT else 2)
 parser.add_argument("--scaling-worker", type=Path, default=None, help=argparse.SUPPRESS)
@@ -88,23 +91,29 @@ def scaling_worker(path: Path) -> None:
 
 
 def scaling_line() -> list[dict]:
-    """Launch the workers (serially: one rank count at a time) and summarise them."""
+    """Launch the workers (serially: one rank count at a time) and summarise them. Each rank
+    holds all grains; the hybrid point (1 rank, numba threads for the DEM, a serial FE
+    solve) is the other way to use two cores."""
     mpiexec = Path(sys.executable).parent / "mpiexec"
     points = []
-    for ranks in args.ranks:
+    configs = [(ranks, 1) for ranks in args.ranks]
+    if args.hybrid_threads > 1:
+        configs.append((1, args.hybrid_threads))
+    for ranks, threads in configs:
         runs = []
         for repeat in range(args.scaling_repeats):
-            path = args.out / f"scaling_n{ranks}_r{repeat}.json"
+            path = args.out / f"scaling_n{ranks}_t{threads}_r{repeat}.json"
             cmd = [str(mpiexec), "-n", str(ranks), sys.executable, __file__, "--scaling-worker", str(path),
                    "--scaling-steps", str(args.scaling_steps)]
             proc = subprocess.run(cmd, capture_output=True, text=True,
-                                  env={**os.environ, "NUMBA_NUM_THREADS": "1"})
+                                  env={**os.environ, "NUMBA_NUM_THREADS": str(threads)})
             if proc.returncode:
                 raise RuntimeError(f"scaling run on {ranks} ranks failed:\n{proc.stderr[-3000:]}")
             runs.append(json.loads(path.read_text()))
         step = np.concatenate([r["step_s"] for r in runs])
         dem = np.concatenate([r["dem_s"] for r in runs])
-        points.append({"ranks": ranks, "grains": runs[0]["grains"], "dofs": runs[0]["dofs"],
+        points.append({"ranks": ranks, "numba_threads": threads, "grains": runs[0]["grains"],
+                       "dofs": runs[0]["dofs"],
                        "penetrator_spheres": runs[0]["penetrator_spheres"],
                        "repeats": len(runs), "steps_per_repeat": args.scaling_steps,
                        "step_s_min": float(step.min()), "step_s_median": float(np.median(step)),
@@ -117,7 +126,7 @@ def scaling_line() -> list[dict]:
                                           for part in runs[0]["split_s"][0]},
                        "setup_s": [r["setup_s"] for r in runs], "runs": runs})
         split = ", ".join(f"{k} {v:.4f}" for k, v in points[-1]["split_s_median"].items())
-        log(f"3D, {ranks} rank(s): {runs[0]['grains']} grains, {runs[0]['dofs']} dofs, per FE step "
+        log(f"3D, {ranks} rank(s) x {threads} thread(s): {runs[0]['grains']} grains, {runs[0]['dofs']} dofs, per FE step "
             f"min {step.min():.3f} s, median {np.median(step):.3f} s (DEM {np.median(dem):.3f} s; "
             f"medians: {split})")
     return points
@@ -239,14 +248,22 @@ def plot(results: dict) -> None:
         axes[1].set_title("2D")
     if line:
         ax = axes[-1]
-        ranks = np.array([p["ranks"] for p in line["points"]])
-        med = np.array([p["step_s_median"] for p in line["points"]])
+        pts = [p for p in line["points"] if p.get("numba_threads", 1) == 1]
+        ranks = np.array([p["ranks"] for p in pts])
+        med = np.array([p["step_s_median"] for p in pts])
         ax.plot(ranks, med, "o-", label="wall time per FE step (median)")
-        ax.plot(ranks, [p["step_s_min"] for p in line["points"]], "s--", label="min")
-        ax.plot(ranks, [p["dem_s_median"] for p in line["points"]], "^:", label="DEM part (median)")
+        ax.plot(ranks, [p["step_s_min"] for p in pts], "s--", label="min")
+        ax.plot(ranks, [p["dem_s_median"] for p in pts], "^:", label="DEM part (median)")
         ax.plot(ranks, med[0] / ranks * ranks[0], "k", lw=0.8, label="ideal")
+        for p in line["points"]:
+            if p.get("numba_threads", 1) > 1:
+                cores = p["ranks"] * p["numba_threads"]
+                ax.plot([cores], [p["step_s_median"]], "D", color="C3",
+                        label=f"{p['ranks']} rank x {p['numba_threads']} threads (median)")
+                ax.plot([cores], [p["dem_s_median"]], "v", color="C3",
+                        label=f"{p['ranks']} rank x {p['numba_threads']} threads, DEM part")
         ax.set_xticks(ranks)
-        ax.set_xlabel("MPI ranks")
+        ax.set_xlabel("cores (MPI ranks x numba threads)")
         ax.set_ylabel("s per FE step")
         p0 = line["points"][0]
         ax.set_title(f"3D coupled, {p0['grains']} grains, {p0['dofs']} dofs")
@@ -266,7 +283,7 @@ results = json.loads(results_path.read_text()) if (args.parts == "scaling" and r
 if args.parts in ("all", "2d"):
     results.update(coupled_vs_full())
 if args.parts in ("all", "scaling") and comm.rank == 0:
-    results["scaling_3d"] = {"parameters": scaling, "numba_threads": 1, "points": scaling_line(),
+    results["scaling_3d"] = {"parameters": scaling, "points": scaling_line(),
                              "command": " ".join(sys.argv)}
 if comm.rank == 0:
     inputs = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}

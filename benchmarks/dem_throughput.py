@@ -5,8 +5,8 @@ This benchmark shows how to:
   lattice of quartz-like spheres, E = 2.9e7 Pa, Hertz-Mindlin + friction 0.5 + restitution
   damping 0.5 with clipped normal force, five walls, gravity, dt = 0.2 Rayleigh step,
   2000 steps, skin 0.2 mm) with the `dem` API,
-- measure particle-steps per second on 1 and 2 numba threads (3 repeats, min and median;
-  loop time only, JIT excluded), contacts per step, JIT compile time cold (fresh
+- measure particle-steps per second on 1 and 2 numba threads (3 repeats interleaved, min
+  and median; loop time only, JIT excluded) and their ratio, contacts per step, JIT compile time cold (fresh
   NUMBA_CACHE_DIR) and warm, and the kinetic energy at step 2000,
 - the same on 1 and 2 MPI ranks (`dem.DistributedSimulation`, one numba thread per rank,
   launched as ``mpiexec -n P python dem_throughput.py --mpi-worker N REPEATS``; loop time =
@@ -137,8 +137,14 @@ def worker(n, repeats, count):
         for k in range(NSTEPS // 100):
             sim.step(100)
             contacts[sim.nsteps] = len(sim.contacts()[0])
+    import numba
+
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel region ran (one thread: the serial kernels)
+        layer = "none"
     print(json.dumps(dict(loops=loops, ke_2000=ke, contacts=contacts, builds=sim.nl.builds,
-                          first_step_s=first)))
+                          first_step_s=first, layer=layer)))
 
 
 def run_worker(n, threads, repeats, count, cache_dir=None):
@@ -233,17 +239,28 @@ def main():
         for n in NS:
             ref = LIGGGHTS_RESULTS[n]
             rn = dict(dem={}, liggghts={})
+            # 1 and 2 threads interleaved, one repeat each in turn, so that a change of
+            # machine load hits both alike
+            runs = {th: [] for th in THREADS}
+            for r in range(REPEATS):
+                for th in THREADS:
+                    runs[th].append(run_worker(n, th, 1, th == 1 and r == 0))
             for th in THREADS:
-                w = run_worker(n, th, REPEATS, th == 1)
-                mps = [n * NSTEPS / t / 1e6 for t in w["loops"]]
-                rn["dem"][str(th)] = dict(loop_s=w["loops"], mps_min=min(mps),
+                loops = [w["loops"][0] for w in runs[th]]
+                w = runs[th][-1]
+                mps = [n * NSTEPS / t / 1e6 for t in loops]
+                rn["dem"][str(th)] = dict(loop_s=loops, mps_min=min(mps),
                                           mps_median=float(np.median(mps)),
                                           mps_best=max(mps), ke_2000=w["ke_2000"],
-                                          neighbour_builds=w["builds"])
-                if w["contacts"]:
-                    rn["contacts"] = w["contacts"]
+                                          neighbour_builds=w["builds"],
+                                          threading_layer=w["layer"])
+                if runs[th][0]["contacts"]:
+                    rn["contacts"] = runs[th][0]["contacts"]
                 print(f"N={n} dem {th} thread(s): {np.median(mps):.2f} M p-steps/s "
                       f"(min {min(mps):.2f}), KE(2000) = {w['ke_2000']:.5e} J")
+            rn["speedup_2_threads"] = rn["dem"]["2"]["mps_median"] / rn["dem"]["1"]["mps_median"]
+            rn["ke_2000_2_threads_equal_1_thread"] = rn["dem"]["2"]["ke_2000"] == \
+                rn["dem"]["1"]["ke_2000"]
             rn["dem_mpi"] = {}
             for procs in THREADS:
                 w = run_mpi_worker(n, procs, REPEATS)
@@ -272,12 +289,18 @@ def main():
             d1 = rn["dem"]["1"]
             rn["ratio_dem_over_liggghts_1core"] = d1["mps_median"] / rn["liggghts"]["1"][
                 "mps_median"]
+            rn["ratio_dem_over_liggghts_2cores"] = rn["dem"]["2"]["mps_median"] / \
+                rn["liggghts"]["2"]["mps_median"]
+            rn["speedup_2_ranks"] = rn["dem_mpi"]["2"]["mps_median"] / d1["mps_median"]
             rn["ke_2000_liggghts"] = ref["ke_2000"]
             rn["ke_2000_rel_diff"] = d1["ke_2000"] / ref["ke_2000"] - 1
             rn["contacts_liggghts"] = ref["contacts"]
             c = rn["contacts"]
             rn["contacts_mean_per_step"] = float(np.mean(list(c.values())))
             res["runs"][str(n)] = rn
+            print(f"N={n}: 2 threads / 1 = {rn['speedup_2_threads']:.2f}, 2 ranks / 1 thread "
+                  f"= {rn['speedup_2_ranks']:.2f}, dem/LIGGGHTS 2 cores = "
+                  f"{rn['ratio_dem_over_liggghts_2cores']:.2f}")
             print(f"N={n}: dem/LIGGGHTS (1 core) = {rn['ratio_dem_over_liggghts_1core']:.2f}"
                   f", KE diff {rn['ke_2000_rel_diff']:+.2e}, contacts at 2000: "
                   f"{c[str(NSTEPS)] if str(NSTEPS) in c else c[NSTEPS]} vs "
@@ -288,9 +311,10 @@ def main():
     res["dem_parallel_thresholds"] = dict(
         pair_candidates=forces.PARALLEL_MIN, kick_drift_particles=integrate.KD_PARALLEL_MIN,
         neighbour_build_particles=neighbours.PAIRS_PARALLEL_MIN,
-        note="with more than one numba thread the prange drivers run from these sizes on "
-             "(dem.forces.PARALLEL_MIN: off by default, slower than the serial loops on "
-             "this 2-vCPU machine); below them the 2-thread run uses the serial kernels")
+        wall_candidates=forces.WALL_PARALLEL_MIN,
+        note="with more than one numba thread the prange drivers run from these sizes on; "
+             "below them the 2-thread run uses the serial kernels (same bits either way)")
+    res["load_average_at_end"] = os.getloadavg()
     res["machine_note"] = ("2-vCPU VM shared with other jobs: compare medians and rerun; the "
                            "LIGGGHTS numbers from RESULTS.md were measured on an idle machine")
     (out / "results.json").write_text(json.dumps(res, indent=1, default=str))
