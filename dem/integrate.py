@@ -361,7 +361,10 @@ class Simulation:
         n = particles.n
         self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0,
                          cell=0.0)
-        self._bf = self._bf_prev = np.zeros((3, 3, 3))  # contact sums b (x) f (`_stress_sums`)
+        # contact sums b (x) f (`_stress_sums`): of the last force pass, of the one before,
+        # and of the last forces with the branch vectors of the pass before
+        self._bf = self._bf_prev = self._bf_mixed = np.zeros((3, 3, 3))
+        self._xh = None  # positions and cell vectors of the last force pass
         self._fe, self._fd, self._td = (np.zeros((n, 3)) for _ in range(3))
         self._hit = np.zeros(n, np.int8)  # particles with a contact in the last force pass
         self._lay = (None, None)  # ((pair arrays it was made from), dem.forces.pair_layout)
@@ -428,7 +431,8 @@ class Simulation:
                              self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell,
                              hit=self._hit, layout=lay, rows=rows)
         if rows:
-            self._bf_prev, self._bf = self._bf, self._stress_sums(len(nl.pi))
+            self._bf_prev = self._bf
+            self._bf, self._bf_mixed = self._stress_sums(len(nl.pi))
         e2, s2 = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              w.point, w.normal, w.velocity, w.material, self.table, h[3],
                              h[4], h[5], self.dt, self._out, *acc, self._wf, hit=self._hit)
@@ -436,13 +440,23 @@ class Simulation:
         return e1 + e2, s1 + s2
 
     def _stress_sums(self, m):
-        """sum over the touching pairs of b (x) f for f the contact force on i by j, its
-        conservative normal part and its damping part (3, 3, 3) [N m] (b: branch vector
-        from i to j's image), from the rows (m, NOUT) of the force pass just done."""
+        """Sums over the touching pairs of b (x) f (3, 3, 3) [N m] for f the contact force
+        on i by j, its conservative normal part and its damping part (the rows (m, NOUT) of
+        the force pass just done), with b the branch vector from i to j's image now and
+        with b as it was at the last force pass (the drift between moved the pair apart by
+        dt L b there: the trapezoid of the cell's work needs that b). A particle wrapped
+        into the cell since then is unwrapped by the whole cell vectors it jumped."""
+        cell, nl, x = self.cell, self.nl, self.p.x
         out = self._out[:m]
-        t = out[:, 18] != 0.0
+        t = np.flatnonzero(out[:, 18] != 0.0)
+        f = [-out[t, c:c + 3] for c in (0, 19, 9)]
         b = self._branches()[t]
-        return np.stack([-b.T @ out[t, c:c + 3] for c in (0, 19, 9)])
+        x0, h0 = (x, cell.h) if self._xh is None else self._xh
+        jump = np.round((x0 - x) @ np.linalg.inv(cell.h).T)  # whole cell vectors
+        i, j = nl.pi[t], nl.pj[t]
+        b0 = x0[j] - x0[i] + (nl.img[t] + jump[j] - jump[i]) @ h0.T
+        self._xh = (x.copy(), cell.h.copy())
+        return np.stack([b.T @ fc for fc in f]), np.stack([b0.T @ fc for fc in f])
 
     def _prune(self, nl):
         """Called after every neighbour build, before the force pass: a subclass may drop
@@ -567,7 +581,7 @@ class Simulation:
         if self.cell is not None:
             # the contacts' share of the affine motion (f . L b dt a pair), trapezoidal
             lt = self.cell.velocity_gradient.T
-            wcell = 0.5 * self.dt * ((self._bf_prev + self._bf) * lt).sum(axis=(1, 2))
+            wcell = 0.5 * self.dt * ((self._bf_prev + self._bf_mixed) * lt).sum(axis=(1, 2))
         contact = wc + wgh + www - wcell[0]
         dissipated = -(contact - (we + wge + wwe - wcell[1])) - (es - self._spring)
         damping = -(wd + wgd + wwd - wcell[2])
@@ -635,14 +649,14 @@ class Simulation:
         spring energy lost on sliding, opening and stiffness changes), work_gravity,
         work_walls, work_ghosts (work done on the particles), work_cell (in a deforming
         periodic cell: the work of the affine motion on the contacts, sum f . L b dt over
-        the pairs = V sigma : L dt, sigma the Love-Weber stress; 0 without a cell), shadow
+        the pairs = V sigma : L dt a step, sigma the Love-Weber stress; 0 without a cell), shadow
         (sum dt^2/(8m)|F|^2 + dt^2/(8I)|T|^2, the velocity Verlet term), initial (kinetic +
         elastic at the start) and ``balance`` = kinetic - shadow + elastic + dissipated -
         work - (initial - initial shadow). Every work is taken by the trapezoidal rule over
         the actual displacements, for which velocity Verlet closes the kinetic part
         exactly: the balance is the time error of the conservative normal forces only
-        (the cell work takes the stress at the two force passes of a step with the branch
-        vectors each had, a further error of second order in dt a step)."""
+        (the cell's work is the trapezoid (f_old + f_new)/2 . L b_old dt a pair, b_old the
+        branch vector the drift moved by, exact like the rest for linear forces)."""
         kt, kr = self.kinetic_energy()
         led = self._led
         sh = self._shadow()
@@ -684,7 +698,8 @@ class Simulation:
         p, led = self.p, self._led
         ke, ok = _kinetic_finite(p.x, p.v, p.omega, p.mass, p.inertia, p.kind)
         if ok:
-            budget = (self._e0 + abs(led["gravity"]) + abs(led["walls"]) + abs(led["ghosts"]))
+            budget = (self._e0 + abs(led["gravity"]) + abs(led["walls"]) + abs(led["ghosts"])
+                      + abs(led["cell"]))
             ok = ke <= self.blowup_factor * budget + 1e-300
         if not ok:
             why = "NaN in x, v or omega" if not np.isfinite(p.v).all() else "kinetic energy jump"

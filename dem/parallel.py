@@ -63,7 +63,7 @@ NCOL = 30
 # contact history rows: global ids (pair: i < j; wall: particle, wall), spring (3), slip, energy
 HCOL = 7
 # the ledger's sums over steps (`Simulation._led` keys)
-_SUMS = ("dissipated", "friction", "gravity", "walls", "ghosts")
+_SUMS = ("dissipated", "friction", "gravity", "walls", "ghosts", "cell")
 
 
 # ---------------------------------------------------------------- ownership
@@ -690,13 +690,14 @@ class DistributedSimulation:
         t = self._totals()
         stored = (t["kinetic_translational"] + t["kinetic_rotational"] - t["shadow"]
                   + t["elastic"] + t["dissipated"])
-        work = t["gravity"] + t["walls"] + t["ghosts"]
+        work = t["gravity"] + t["walls"] + t["ghosts"] + t["cell"]
         return dict(kinetic_translational=t["kinetic_translational"],
                     kinetic_rotational=t["kinetic_rotational"], elastic=t["elastic"],
                     dissipated_damping=t["dissipated"] - t["friction"],
                     dissipated_friction=t["friction"], work_gravity=t["gravity"],
-                    work_walls=t["walls"], work_ghosts=t["ghosts"], shadow=t["shadow"],
-                    initial=self._e0, balance=stored - work - (self._e0 - self._shadow0))
+                    work_walls=t["walls"], work_ghosts=t["ghosts"], work_cell=t["cell"],
+                    shadow=t["shadow"], initial=self._e0,
+                    balance=stored - work - (self._e0 - self._shadow0))
 
     def gather(self, root: int = 0) -> dict | None:
         """On ``root``: x, v, omega, force, torque (N, 3) in global-id order and ``rank``
@@ -737,7 +738,7 @@ class DistributedSimulation:
         s, sums = self.local, self._sums()
         ke, finite = (0.0, True) if s is None else _kinetic_finite(
             s.p.x, s.p.v, s.p.omega, s.p.mass, s.p.inertia, s.p.kind)
-        v = np.array([ke, float(not finite), sums["gravity"], sums["walls"], sums["ghosts"]])
+        v = np.array([ke, float(not finite)] + [sums[k] for k in _SUMS[2:]])  # the works
         if self.comm.size > 1:
             v = self.comm.allreduce(v)
         ke, finite = v[0], v[1] == 0.0
