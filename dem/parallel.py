@@ -411,6 +411,10 @@ class DistributedSimulation:
             new = self._new_owners(rows[:, X])
         else:
             self._check_domain()
+            if self._unchanged():  # the same owners and halos: the local run goes on
+                self._xref = self.local.p.x.copy() if self.local is not None else self._xref
+                self.decompositions += 1
+                return
             s = self.local
             self._bank = self._sums()  # the ledger of this local run: banked
             wf = self._wall_share()
@@ -453,11 +457,11 @@ class DistributedSimulation:
         wf = np.zeros((nw, 9)) if self.local is None else self.local._wf.copy()
         return self.comm.allreduce(wf) if self.comm.size > 1 and nw else wf
 
-    def _halo_rows(self, own):
-        """Copies of this rank's particles to the ranks whose owned box, inflated by the halo
-        width, contains them; returns the copies received, in plan order."""
+    def _halo_sends(self, x):
+        """Collective: which of the owned positions x (n, 3) go as halo copies to which rank
+        (those in the rank's owned box inflated by the halo width): rows (k,) of x and
+        their destinations (k,), by destination."""
         comm = self.comm
-        x = own[:, X]
         box = np.array([x.min(axis=0), x.max(axis=0)]) if len(x) else \
             np.array([np.full(3, np.inf), np.full(3, -np.inf)])
         boxes = np.array(comm.allgather(box))
@@ -469,8 +473,31 @@ class DistributedSimulation:
                                    .all(axis=1))
                 idx.append(k)
                 dest.append(np.full(len(k), r, np.int64))
-        self._send_own, self._send_dest = np.concatenate(idx), np.concatenate(dest)
-        return _exchange_rows(comm, own[self._send_own], self._send_dest)
+        return np.concatenate(idx), np.concatenate(dest)
+
+    def _halo_rows(self, own):
+        """Copies of this rank's particles to the ranks that need them (`_halo_sends`);
+        returns the copies received, in plan order."""
+        self._send_own, self._send_dest = self._halo_sends(own[:, X])
+        return _exchange_rows(self.comm, own[self._send_own], self._send_dest)
+
+    def _unchanged(self) -> bool:
+        """Collective: would a decomposition now keep every particle on its rank and every
+        halo as it is? (Then it need not build a new local run: the grains of a settling
+        bed mostly fall along the cuts.)"""
+        s, me = self.local, self.comm.rank
+        oi = np.flatnonzero(self.owned) if s is not None else np.empty(0, np.int64)
+        x = s.p.x[oi] if s is not None else np.empty((0, 3))
+        same = bool((self._new_owners(x) == me).all())
+        k, dest = self._halo_sends(x)
+        send = self._plan[0]
+        old = send[send >= 0]
+        # the plan sends by destination, each block in the order of the rows; compare sets
+        same &= len(old) == len(k) and all(
+            np.array_equal(np.sort(old[self._send_dest == r]), oi[k[dest == r]])
+            for r in range(self.comm.size) if r != me)
+        return bool(self.comm.allreduce(int(same), op=_mpi().MIN)) if self.comm.size > 1 \
+            else same
 
     def _build_local(self, own, halo, pairs, wall, carried):
         """The local `Simulation` of owned + halo rows in global-id order, the halo plan,
