@@ -412,7 +412,10 @@ class DistributedSimulation:
         else:
             self._check_domain()
             if self._unchanged():  # the same owners and halos: the local run goes on
-                self._xref = self.local.p.x.copy() if self.local is not None else self._xref
+                if self.local is not None:
+                    self._xref = self.local.p.x.copy()
+                self._rebuild_lists()
+                self._relisted = False
                 self.decompositions += 1
                 return
             s = self.local
@@ -447,7 +450,16 @@ class DistributedSimulation:
             if self.local is not None:
                 self.local._wf[:] = wf if me == first else 0.0
         self._unbooked0 = self._unbooked_spring()
+        self._relisted = False  # the new local run built its lists now
         self.decompositions += 1
+
+    def _rebuild_lists(self):
+        """The local neighbour list built now, as on every other rank (were each rank to
+        rebuild when its own skin runs out, the others would wait for it in turn)."""
+        s = self.local
+        if s is not None:
+            s.nl.build(s.p.x, s.p.radius, s.walls.point, s.walls.normal)
+            s._prune(s.nl)
 
     def _wall_share(self):
         """The wall resultants (nw, 9) of the last force pass (sum of the ranks' shares):
@@ -585,7 +597,7 @@ class DistributedSimulation:
         else:
             sspec[0][:] = 0.0  # headers only
         self.comm.Alltoallv(sspec, rspec)
-        d2 = max(d2, rspec[0][self._heads, 0].max(initial=0.0))
+        d2 = self._d2 = max(d2, rspec[0][self._heads, 0].max(initial=0.0))
         if d2 > (0.5 * self.halo_skin * (1.0 - 1e-9)) ** 2:  # (rounding of the estimate)
             return True
         if s is not None:
@@ -649,7 +661,17 @@ class DistributedSimulation:
         else the halo copies as the next step's drift will make them. The last step of a
         call does neither: the next call decides and refreshes from the state it ends in."""
         self._left -= 1
-        return self._left > 0 and self._exchange(2)
+        if self._left == 0:
+            return False
+        if self._exchange(2):
+            return True
+        if not self._relisted and self._d2 > (0.5 * self.skin) ** 2:
+            # the local lists would soon rebuild, rank by rank: all of them now instead
+            # (once between decompositions: then the displacements from the lists' build
+            # are no longer those from the halos')
+            self._rebuild_lists()
+            self._relisted = True
+        return False
 
     # ---------------------------------------------------------------- results (collective)
     def kinetic_energy(self) -> np.ndarray:
