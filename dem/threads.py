@@ -4,12 +4,6 @@ OpenMP before TBB: a parallel region costs ~1.5 us under GNU OpenMP and ~11 us u
 the project's 2-vCPU VM (median of 2000 back-to-back launches), and a DEM step opens up to
 four; the layer is picked at the first parallel launch, so this runs before it.
 
-Waiting threads sleep (``OMP_WAIT_POLICY=PASSIVE``) instead of spinning: on a machine
-whose other core is busy, a spinning worker holds the core the thread it waits for needs,
-and the coupled 3D step's DEM part went from 0.046 s on one thread to 0.48 s on two (load
-average 5); passive, 0.038 s. (libgomp reads this when it loads, at the first parallel
-launch.)
-
 Under mpiexec, the ranks of one node share its cores: each rank gets cores / ranks threads.
 Two ranks forking two threads each on two cores make every parallel region wait for a
 descheduled thread (the settle benchmark fell from ~10 to ~1 M particle-steps/s). The
@@ -17,7 +11,13 @@ launchers' own variables give the ranks per node without an MPI call (MPICH/Hydr
 ``MPI_LOCALNRANKS``, Open MPI ``OMPI_COMM_WORLD_LOCAL_SIZE``).
 
 An explicit ``NUMBA_NUM_THREADS``, ``NUMBA_THREADING_LAYER`` or
-``NUMBA_THREADING_LAYER_PRIORITY``, ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is left alone.
+``NUMBA_THREADING_LAYER_PRIORITY`` is left alone.
+
+Threads wait for work by spinning (libgomp's default), as in any OpenMP code: on cores that
+other jobs keep busy, set ``NUMBA_NUM_THREADS=1`` (settle scene, 10k grains, both cores busy
+with other processes: 2 spinning threads 2-5, 1 thread 12-14 M particle-steps/s; sleeping
+waiters, ``OMP_WAIT_POLICY=PASSIVE``, 12-15 there but 10-12 instead of 23 on idle cores,
+where 1 thread gives 19).
 """
 
 import os
@@ -27,8 +27,6 @@ import numba
 if "NUMBA_THREADING_LAYER" not in os.environ and \
         "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
-    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 
 def node_ranks() -> int:
