@@ -287,7 +287,7 @@ class DistributedSimulation:
         comm: mpi4py communicator (default COMM_WORLD).
         owner: ``owner(x) -> ranks``: positions (n, 3) [m] -> ints in [0, comm.size),
             called collectively on each rank's owned particles at every decomposition
-            (None: `RecursiveBisection` of the initial positions).
+            (None: `RecursiveBisection` of the initial positions, its cuts along gravity).
         skin: Verlet skin of the local neighbour lists [m] (default 0.2 r_max, as
             `Simulation`). halo_skin: the decomposition's skin [m] (default 2 x skin: a
             decomposition costs a few neighbour builds, so it pays to have half as many for
@@ -297,8 +297,9 @@ class DistributedSimulation:
 
     Attributes: ``local`` (this rank's `Simulation`, None if it holds no particle),
     ``owned`` (bool mask of its owned particles), ``gid`` (their global ids), ``time``,
-    ``nsteps``, ``dt``, ``decompositions``, ``migrated`` (particles that changed rank, over
-    all decompositions and ranks).
+    ``nsteps``, ``dt``, ``decompositions`` (also those that found owners and halos
+    unchanged), ``migrated`` (particles that changed rank, over all decompositions and
+    ranks).
     """
 
     def __init__(self, particles, materials, walls=(), gravity=(0.0, 0.0, 0.0), dt=None, *,
@@ -317,8 +318,8 @@ class DistributedSimulation:
                                      allow_overlap, owner)
         self.owner = owner if owner is not None else self._bisection
         self.time, self.nsteps, self.decompositions, self.migrated = 0.0, 0, 0, 0
-        # this rank's share of the ledger sums over the local runs before the last
-        # decomposition, and of the spring energy the present run books but not this rank
+        # this rank's share of the ledger sums over the local runs before the present one,
+        # and the spring energy of the present run's pairs another rank books, at its start
         self._bank = dict.fromkeys(_SUMS, 0.0)
         self._unbooked0 = 0.0
         self.local, self._plan = None, None

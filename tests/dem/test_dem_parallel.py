@@ -116,6 +116,7 @@ def test_one_rank_equals_simulation_exactly():
     dsim = DistributedSimulation(copy(p), mat, walls, (0, 0, -9.81), comm=MPI.COMM_SELF)
     dsim.step(STEPS // 2)
     assert dsim.decompositions == 1
+    dsim._unchanged = lambda: False  # (else a decomposition sees nothing to change)
     for _ in range(10):
         dsim._decompose()
         dsim.step(STEPS // 20)
@@ -200,3 +201,21 @@ def test_energy_ledger_matches_serial_and_closes():
     if comm.size > 1:
         assert dsim.decompositions > 3
         assert comm.allreduce(int((~dsim.owned).sum()), op=MPI.MIN) > 0  # halos exist
+
+
+def test_blowup_writes_the_last_good_state(tmp_path):
+    """A corrupted state raises BlowUpError at the next check, with the state of the check
+    before written (global ids, x, v, omega), as `Simulation` does."""
+    from mpi4py import MPI
+
+    p, mat, walls = settling_box(2, 2, 2)
+    path = str(tmp_path / "last.npz")
+    d = DistributedSimulation(copy(p), mat, walls, (0, 0, -9.81), comm=MPI.COMM_SELF,
+                              check_every=5, state_path=path)
+    d.step(5)
+    d.local.p.v[3] = (300.0, 0.0, 0.0)  # a kinetic energy from nowhere
+    with pytest.raises(dem.BlowUpError, match="kinetic energy jump") as err:
+        d.step(5)
+    good = np.load(err.value.path)
+    assert int(good["step"]) == 5 and np.isfinite(good["v"]).all()
+    assert np.array_equal(good["gid"], np.arange(p.n)) and good["x"].shape == (p.n, 3)
