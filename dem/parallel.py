@@ -289,11 +289,12 @@ class DistributedSimulation:
             called collectively on each rank's owned particles at every decomposition
             (None: `RecursiveBisection` of the initial positions, its cuts along gravity).
         skin: Verlet skin of the local neighbour lists [m] (default 0.2 r_max, as
-            `Simulation`). halo_skin: the decomposition's skin [m] (default 2 x skin: a
-            decomposition costs a few neighbour builds, so it pays to have half as many for
-            a slightly wider halo): halo width 2 r_max + halo_skin; a new decomposition
-            when a particle would move more than halo_skin / 2 since the last one (one
-            rank: never, there is no halo).
+            `Simulation`). halo_skin: the decomposition's skin [m] (default 4 x skin: a
+            decomposition costs a few neighbour builds, so it pays to have fewer for a
+            wider halo; settle scene, 50k grains on 2 ranks: 4 x skin 5 % faster than
+            2 x skin, 6 decompositions instead of 11): halo width 2 r_max + halo_skin; a
+            new decomposition when a particle would move more than halo_skin / 2 since
+            the last one (one rank: never, there is no halo).
 
     Attributes: ``local`` (this rank's `Simulation`, None if it holds no particle),
     ``owned`` (bool mask of its owned particles), ``gid`` (their global ids), ``time``,
@@ -348,7 +349,7 @@ class DistributedSimulation:
                 p.check_overlaps(allow=allow_overlap)
                 rmax = float(p.radius.max())
                 skin = 0.2 * rmax if skin is None else float(skin)
-                halo_skin = 2.0 * skin if halo_skin is None else float(halo_skin)
+                halo_skin = 4.0 * skin if halo_skin is None else float(halo_skin)
                 if not (skin >= 0 and halo_skin > 0):
                     raise ValueError(f"skin must be >= 0 m and halo_skin > 0 m, got "
                                      f"{skin!r}, {halo_skin!r}")

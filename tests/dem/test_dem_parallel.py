@@ -71,7 +71,7 @@ def test_matches_serial_with_migration():
     p, mat, walls, sim = serial_reference()
     across_z = RecursiveBisection.from_points(p.x, comm.size, axes=(2,))
     dsim = DistributedSimulation(p if comm.rank == 0 else None, mat, walls, (0, 0, -9.81),
-                                 comm=comm, owner=across_z)
+                                 comm=comm, owner=across_z, halo_skin=0.2 * R)  # (= skin)
     dsim.step(STEPS)
     assert_same_as_serial(dsim, sim)
     assert len(sim.contacts()[0]) > 100  # a real contact network ...
