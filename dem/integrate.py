@@ -284,6 +284,42 @@ def _kinetic_finite(x, v, omega, mass, inertia, kind):
     return ke, ok
 
 
+@njit(cache=True)
+def _branch_force_sums(pi, pj, img, out, x, h, x0, h0, hinv, bf, bf0):
+    """bf[q] += b (x) f_q and bf0[q] += b0 (x) f_q (3, 3, 3) over the touching rows of
+    out: f_0, f_1, f_2 the contact force on i by j, its conservative normal and its damping
+    parts, b = x_j - x_i + h img [m], b0 the same at positions x0 and cell h0 (3, 3), with
+    a particle's jump into the cell since x0 (whole cell vectors, hinv = h^-1) undone."""
+    b = np.empty(3)
+    b0 = np.empty(3)
+    sh = np.empty(3)
+    for k in range(pi.shape[0]):
+        if out[k, 18] == 0.0:
+            continue
+        i = pi[k]
+        j = pj[k]
+        for a in range(3):  # image shift of j as seen from x0
+            ji = 0.0
+            jj = 0.0
+            for c in range(3):
+                ji += hinv[a, c] * (x0[i, c] - x[i, c])
+                jj += hinv[a, c] * (x0[j, c] - x[j, c])
+            sh[a] = img[k, a] + np.round(jj) - np.round(ji)
+        for a in range(3):
+            b[a] = x[j, a] - x[i, a]
+            b0[a] = x0[j, a] - x0[i, a]
+            for c in range(3):
+                b[a] += h[a, c] * img[k, c]
+                b0[a] += h0[a, c] * sh[c]
+        for q in range(3):
+            col = 0 if q == 0 else (19 if q == 1 else 9)
+            for a in range(3):
+                for c in range(3):
+                    f = -out[k, col + c]
+                    bf[q, a, c] += b[a] * f
+                    bf0[q, a, c] += b0[a] * f
+
+
 _STATE_KEYS = ("x", "v", "omega", "radius", "mass", "inertia", "material", "kind", "force",
                "torque")
 
@@ -426,7 +462,9 @@ class Simulation:
         if self._out.shape[0] < m:
             self._out = np.empty((int(1.2 * m) + 16, NOUT))
         cell = NO_CELL if self.cell is None else self.cell.as_kernel_args(nl.img)
-        rows = self.cell is not None and update_history  # (the same bits as without rows)
+        # the cell's work needs the contacts' rows (the same bits as without them), at every
+        # pass: the trapezoid of a step under a velocity gradient uses the pass before
+        rows = self.cell is not None and update_history
         e1, s1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell,
                              hit=self._hit, layout=lay, rows=rows)
@@ -447,16 +485,12 @@ class Simulation:
         dt L b there: the trapezoid of the cell's work needs that b). A particle wrapped
         into the cell since then is unwrapped by the whole cell vectors it jumped."""
         cell, nl, x = self.cell, self.nl, self.p.x
-        out = self._out[:m]
-        t = np.flatnonzero(out[:, 18] != 0.0)
-        f = [-out[t, c:c + 3] for c in (0, 19, 9)]
-        b = self._branches()[t]
         x0, h0 = (x, cell.h) if self._xh is None else self._xh
-        jump = np.round((x0 - x) @ np.linalg.inv(cell.h).T)  # whole cell vectors
-        i, j = nl.pi[t], nl.pj[t]
-        b0 = x0[j] - x0[i] + (nl.img[t] + jump[j] - jump[i]) @ h0.T
+        bf, bf0 = np.zeros((3, 3, 3)), np.zeros((3, 3, 3))
+        _branch_force_sums(nl.pi, nl.pj, nl.img, self._out[:m], x, cell.h, x0, h0,
+                           np.linalg.inv(cell.h), bf, bf0)
         self._xh = (x.copy(), cell.h.copy())
-        return np.stack([b.T @ fc for fc in f]), np.stack([b0.T @ fc for fc in f])
+        return bf, bf0
 
     def _prune(self, nl):
         """Called after every neighbour build, before the force pass: a subclass may drop
