@@ -139,50 +139,15 @@ def _cut_axes(gravity):
 
 # ---------------------------------------------------------------- kernels
 @njit(cache=True)
-def _pack_predicted(idx, x, v, omega, force, torque, mass, inertia, kind, g, h, dt, kicks,
-                    head, buf):
-    """Rows [x, v, omega] (9,) of particles idx after ``kicks`` half-kicks (h [s]) with the
-    forces now and a drift (dt [s]): 1 between two steps, 2 from a step's force pass (its
-    second half-kick, then the next step's first). FREE particles as `Simulation.step`
-    moves them (the same operations in the same order, so the same bits), the others as
-    prescribed now. Rows of idx < 0 are headers: [head, 0, ...]."""
-    for k in range(idx.shape[0]):
-        i = idx[k]
-        if i < 0:
-            buf[k, :] = 0.0
-            buf[k, 0] = head
-            continue
-        for c in range(3):
-            if kind[i] == 0:
-                u = v[i, c]
-                w = omega[i, c]
-                for _ in range(kicks):
-                    u += h * (force[i, c] / mass[i] + g[c])
-                    w += h * torque[i, c] / inertia[i]
-                buf[k, c] = x[i, c] + dt * u
-                buf[k, 3 + c] = u
-                buf[k, 6 + c] = w
-            else:
-                buf[k, c], buf[k, 3 + c], buf[k, 6 + c] = x[i, c], v[i, c], omega[i, c]
-
-
-@njit(cache=True)
-def _unpack(idx, buf, x, v, omega):
-    for k in range(idx.shape[0]):
-        i = idx[k]
-        if i < 0:  # a header
-            continue
-        for c in range(3):
-            x[i, c] = buf[k, c]
-            v[i, c] = buf[k, 3 + c]
-            omega[i, c] = buf[k, 6 + c]
-
-
-@njit(cache=True)
-def _next_disp2(x, v, force, mass, kind, owned, g, h, dt, kicks, xref):
-    """Largest squared distance [m^2] of owned particles from xref after ``kicks``
-    half-kicks and the next drift (as `_pack_predicted` up to rounding: a criterion, not
-    a trajectory; particles that are not FREE: after dt v, their prescribed motion)."""
+def _predict(x, v, omega, force, torque, mass, inertia, kind, owned, slot, g, h, dt, kicks,
+             xref, buf):
+    """One pass over the local rows after ``kicks`` half-kicks (h [s]) with the forces now
+    and a drift (dt [s]) (1 between two steps, 2 from a step's force pass: its second
+    half-kick, then the next step's first). Returns the largest squared distance [m^2] of
+    an owned particle from xref then (a criterion: rounding aside; not FREE: after dt v,
+    the prescribed motion) and writes rows [x, v, omega] (9,) of the particles with
+    slot >= 0 to buf[slot] as `Simulation.step` will make them (FREE: the same operations
+    in the same order, so the same bits; the others as prescribed now)."""
     d2 = 0.0
     hk = kicks * h
     for i in range(x.shape[0]):
@@ -198,7 +163,34 @@ def _next_disp2(x, v, force, mass, kind, owned, g, h, dt, kicks, xref):
         else:
             continue
         d2 = max(d2, b0 * b0 + b1 * b1 + b2 * b2)
+        k = slot[i]
+        if k < 0:
+            continue
+        for c in range(3):
+            if kind[i] == 0:
+                u = v[i, c]
+                w = omega[i, c]
+                for _ in range(kicks):
+                    u += h * (force[i, c] / mass[i] + g[c])
+                    w += h * torque[i, c] / inertia[i]
+                buf[k, c] = x[i, c] + dt * u
+                buf[k, 3 + c] = u
+                buf[k, 6 + c] = w
+            else:
+                buf[k, c], buf[k, 3 + c], buf[k, 6 + c] = x[i, c], v[i, c], omega[i, c]
     return d2
+
+
+@njit(cache=True)
+def _unpack(idx, buf, x, v, omega):
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        if i < 0:  # a header
+            continue
+        for c in range(3):
+            x[i, c] = buf[k, c]
+            v[i, c] = buf[k, 3 + c]
+            omega[i, c] = buf[k, 6 + c]
 
 
 # ---------------------------------------------------------------- communication
@@ -537,9 +529,17 @@ class DistributedSimulation:
 
         send, scount = with_heads(where[self._send_own], scount)
         recv, rcount = with_heads(where[len(own):], rcount)
-        self._plan = (send, recv, _spec(np.empty((len(send), 9)), scount),
+        self._plan = (send, recv, _spec(np.zeros((len(send), 9)), scount),
                       _spec(np.empty((len(recv), 9)), rcount), scount, rcount)
-        self._heads = np.flatnonzero(recv < 0)
+        self._heads, self._sheads = np.flatnonzero(recv < 0), np.flatnonzero(send < 0)
+        # the buffer row each local row sent is predicted into, and the rows of a particle
+        # sent to more than one rank: copies of its first (dst, src)
+        sent = np.flatnonzero(send >= 0)
+        local, first = np.unique(send[sent], return_index=True)
+        self._slot = np.full(len(rows), -1, np.int64)
+        self._slot[local] = sent[first]
+        src = self._slot[send[sent]]
+        self._dups = (sent[src != sent], src[src != sent])
         self.gid, self.owned = rows[:, GID].astype(np.int64), ~is_halo
         self._xref = rows[:, X].copy()
         if len(rows) == 0:
@@ -591,13 +591,12 @@ class DistributedSimulation:
         s, d2 = self.local, 0.0
         if s is not None:
             p = s.p
-            d2 = _next_disp2(p.x, p.v, p.force, p.mass, p.kind, self.owned, self.gravity,
-                             0.5 * self.dt, self.dt, kicks, self._xref)
-            _pack_predicted(send, p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia,
-                            p.kind, self.gravity, 0.5 * self.dt, self.dt, kicks, d2,
-                            sspec[0])
-        else:
-            sspec[0][:] = 0.0  # headers only
+            d2 = _predict(p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia, p.kind,
+                          self.owned, self._slot, self.gravity, 0.5 * self.dt, self.dt, kicks,
+                          self._xref, sspec[0])
+            if len(self._dups[0]):
+                sspec[0][self._dups[0]] = sspec[0][self._dups[1]]
+        sspec[0][self._sheads, 0] = d2
         self.comm.Alltoallv(sspec, rspec)
         d2 = self._d2 = max(d2, rspec[0][self._heads, 0].max(initial=0.0))
         if d2 > (0.5 * self.halo_skin * (1.0 - 1e-9)) ** 2:  # (rounding of the estimate)
