@@ -215,7 +215,7 @@ def _kick_drift_range(lo, hi, x, v, omega, force, torque, fe, fd, td, mass, iner
     res[7] = d2
 
 
-KD_CHUNK = 512
+KD_CHUNK = 256
 """Particles per task of `_kick_drift_par` (fixed: its sums do not depend on threads)."""
 KD_PARALLEL_MIN = 4096
 """Particles from which, with more than one numba thread, `_kick_drift_par` runs (below, a

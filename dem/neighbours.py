@@ -94,7 +94,7 @@ def _pairs_py(x, radius, skin, lo, h, nc):
     return pi, pj
 
 
-PAIRS_PARALLEL_MIN = 20_000  # particles; below, a thread rendezvous costs more than it saves
+PAIRS_PARALLEL_MIN = 4096  # particles; below, a thread rendezvous costs more than it saves
 _pairs = njit(parallel=True, cache=True)(_pairs_py)
 _pairs_ser = njit(cache=True)(_pairs_py)
 

@@ -114,7 +114,7 @@ SCRIPT = textwrap.dedent("""
     kernels = [forces._pair_rows_csr, forces._gather, forces.pair_layout, forces._wall_rows,
                forces._wall_scatter,
                integrate._drift, integrate._kick, integrate._kick_drift_par,
-               neighbours._pairs_ser]
+               neighbours._pairs]
     print(sum(sum(k.stats.cache_misses.values()) for k in kernels),
           min(sum(k.stats.cache_hits.values()) for k in kernels), len(sim.nl.pi))
 """)
