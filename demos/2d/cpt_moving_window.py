@@ -15,7 +15,11 @@ This demo shows how to:
   jumps and the new grains' stress against that target and against the FE + geostatic
   stress per move (checked: within 30 % of the target).
 
-Run: ``python demos/2d/cpt_moving_window.py [--quick] [--out DIR]``.
+Run: ``python demos/2d/cpt_moving_window.py [--quick] [--out DIR]``; ``--max-height``,
+``--servo-rate`` and ``--seed`` change the window's travelling height, the servo and the new
+grains' lattice (e.g. ``--max-height 0.09``: q_c rises smoothly with depth, but the third move
+is fragile; the default 0.06 is robust, but its top ghost band acts as a lid on the grains
+and q_c jumps after the first move).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import argparse
 import json
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
@@ -38,6 +43,11 @@ from coupling.penetration import CouplingUnstable, PenetrationParameters
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 parser.add_argument("--quick", action="store_true", help="a small, short run (tests)")
 parser.add_argument("--out", type=Path, default=Path("output/cpt_moving_window"))
+parser.add_argument("--max-height", type=float, default=None,
+                    help="window height at which it travels [m] (default 0.06; 0.07 quick)")
+parser.add_argument("--servo-rate", type=float, default=None,
+                    help="largest radius growth per servo cycle (0: a plain settle)")
+parser.add_argument("--seed", type=int, default=None, help="of the new grains' lattice")
 args = parser.parse_args()
 quick = args.quick or os.environ.get("GRANFE_SHORT") == "1"
 comm = MPI.COMM_WORLD
@@ -63,6 +73,9 @@ else:
     # twice the cone's travel at 56-65 mm in most of a dozen runs; none of eight at 60 mm)
     moving = MovingWindowParameters(depth=0.065, trigger=6, step=6, max_height=0.06,
                                     settle_steps=8000)
+overrides = {k: v for k, v in (("max_height", args.max_height), ("servo_rate", args.servo_rate),
+                                ("seed", args.seed)) if v is not None}
+moving = replace(moving, **overrides)
 # the fixed-window run to this depth is refused
 try:
     PenetrationParameters(**{**prm.__dict__, "depth": moving.depth})
