@@ -352,6 +352,11 @@ def spread(b, nchunk):
     return (b * SPREAD) % np.int64(nchunk)
 
 
+# `_rows_range` repeats the pair body of `_pair_csr`, and `_wall_rows_range` /
+# `_wall_scatter` the open test and wall scatter of `_wall_all`, on purpose: the shared
+# body as an inline="always" helper returning whether the pair touches measured 6x slower
+# in `_pair_csr` (settle scene, 10k grains: 2000 vs 340 us per step) and 25 % slower in
+# `_wall_all`, with the same bits.
 @njit(cache=True)
 def _rows_range(lo, hi, start, pj32, live, x, v, omega, radius, mass, material, table, hist,
                 slip, etan, dt, out, touched):

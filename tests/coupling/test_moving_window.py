@@ -55,16 +55,22 @@ def test_push_apart_holds_fixed_particles():
     assert worst <= 1e-9 and out[1, 0] >= 2e-3 - 1e-9
 
 
-@pytest.fixture(scope="module")
-def moved():
-    """A small coupled penetration whose FE state is set to a uniform strain, then one move
-    with no settle (so that the grains are where the move put them)."""
+def small_window(settle_steps):
+    """The small 2D penetration the move tests share, its window ready to move."""
     prm = PenetrationParameters(chamber_width=0.16, chamber_depth=0.14, window_half_width=0.02,
                                 window_depth=0.03, element_size_window=0.006,
                                 element_size_far=0.012, radius=2e-3, cone_radius=0.006,
                                 depth=0.01, settle_time=0.05, substeps=20)
-    mv = MovingWindowParameters(depth=0.05, trigger=3, step=5, max_height=0.07, settle_steps=0)
-    cpt = MovingWindowPenetration(prm, mv, MPI.COMM_WORLD, log=lambda *_: None)
+    mv = MovingWindowParameters(depth=0.05, trigger=3, step=5, max_height=0.07,
+                                settle_steps=settle_steps)
+    return MovingWindowPenetration(prm, mv, MPI.COMM_WORLD, log=lambda *_: None)
+
+
+@pytest.fixture(scope="module")
+def moved():
+    """A small coupled penetration whose FE state is set to a uniform strain, then one move
+    with no settle (so that the grains are where the move put them)."""
+    cpt = small_window(settle_steps=0)
     # u_y > 0 below the surface: every reference position X = x - u lies inside the mesh
     strain = np.array([[2e-3, 1e-3], [0.0, -3e-3]])
     w = cpt.problem.w
@@ -132,17 +138,12 @@ def test_new_grains_carry_the_layer_above():
     window's column), within 30 % (the servo's own tolerance is ~1 %; the rest is room for
     the packing's randomness). A lattice laid at the measured solid fraction and settled
     without growth carried -230 Pa against -972 Pa here (3-40x too little in the demo)."""
-    prm = PenetrationParameters(chamber_width=0.16, chamber_depth=0.14, window_half_width=0.02,
-                                window_depth=0.03, element_size_window=0.006,
-                                element_size_far=0.012, radius=2e-3, cone_radius=0.006,
-                                depth=0.01, settle_time=0.05, substeps=20)
-    mv = MovingWindowParameters(depth=0.05, trigger=3, step=5, max_height=0.07, settle_steps=3000)
-    cpt = MovingWindowPenetration(prm, mv, MPI.COMM_WORLD, log=lambda *_: None)
+    cpt = small_window(settle_steps=3000)
     lo, band = cpt.regions.window.lo[1], cpt.regions.ghost_width
     above = cpt._grain_stress(*cpt._box(lo, lo + band))[1, 1]
     record = cpt.move()
     new_lo, new_hi = cpt.regions.window.lo[1], lo - band
-    weight = cpt.material_fe.rho * prm.gravity * (lo + 0.5 * band - 0.5 * (new_lo + new_hi))
+    weight = cpt.material_fe.rho * cpt.prm.gravity * (lo + 0.5 * band - 0.5 * (new_lo + new_hi))
     target = above - weight
     assert target < 0
     new = record["stress_axis"]["new_grains_after_settle"]

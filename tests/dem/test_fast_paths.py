@@ -25,6 +25,13 @@ def state(sim):
     return np.concatenate([p.x, p.v, p.omega, p.force, p.torque])
 
 
+def advance(fast, plain, n):
+    """n steps: in one call (fused kick + drift) and in n calls of one step."""
+    fast.step(n)
+    for _ in range(n):
+        plain.step(1)
+
+
 def test_layout_and_fused_kick_drift_match_plain_paths(monkeypatch):
     fast = scene()
     fast.step(300)
@@ -47,14 +54,10 @@ def test_history_written_between_steps_is_seen():
     not, is released or used exactly as by the plain path."""
     a, b = scene(), scene()
     b._layout = lambda fresh: None
-    a.step(150)
-    for _ in range(150):
-        b.step(1)
+    advance(a, b, 150)
     for sim in (a, b):
         sim.nl.hist[:] = 1e-9
-    a.step(100)
-    for _ in range(100):
-        b.step(1)
+    advance(a, b, 100)
     assert np.array_equal(state(a), state(b))
     assert np.array_equal(a.nl.hist, b.nl.hist)
 
@@ -65,12 +68,8 @@ def test_compute_forces_between_steps():
     forces)."""
     a, b = scene(), scene()
     b._layout = lambda fresh: None
-    a.step(120)
-    for _ in range(120):
-        b.step(1)
+    advance(a, b, 120)
     for sim in (a, b):
         sim.compute_forces(update_history=False)
-    a.step(80)
-    for _ in range(80):
-        b.step(1)
+    advance(a, b, 80)
     assert np.array_equal(state(a), state(b))
