@@ -7,10 +7,15 @@ One move (:meth:`MovingWindowPenetration.move`), all in the FE's reference confi
 ``x = X + u(X)``):
 
 1. the window Box's bottom goes down by ``step``; its top follows only when the window would
-   be taller than ``max_height`` (a window that grows, then travels);
+   be taller than ``max_height`` (a window that grows, then travels); a travelling window
+   keeps a chimney, a column of ``chimney`` cone radii about the axis up to the free
+   surface (:meth:`MovingWindowPenetration._window_shape`, a :class:`~coupling.regions.
+   Union` of two boxes);
 2. surviving grains get reference positions ``X = x - u(X)`` (fixed point: a ghost stays
    exactly where it is, a free grain's displacement ``x - X`` is the FE displacement there,
-   so the first projection after the move returns the FE's own values);
+   so the first projection after the move returns the FE's own values); grains heaved
+   beyond the mesh keep X clamped inside it and their motion is counted from ``x - u(X)``
+   (``x_base``), so that they do not jump;
 3. the newly covered region (inside the new window + ghost band, outside the old one) is
    filled, in 2D, with the initial window's own hexagonal lattice continued downward in
    phase (:func:`continued_lattice`: the new rows nest in the notches of the old band's
@@ -21,9 +26,10 @@ One move (:meth:`MovingWindowPenetration.move`), all in the FE's reference confi
    distribution; each new grain is placed at ``X + u(X)`` with the FE velocity and spin
    ``d phi / dt``; new grains overlapping old ones by more than half a radius are dropped,
    the rest are pushed apart geometrically with the old grains held;
-4. grains now outside window + band are removed: far behind the tip their motion is the
-   continuum's (the FE underneath carries it from here on; the cone's shaft then passes
-   through continuum without contact, so the sleeve friction above the window is lost);
+4. grains now outside window + band are removed: far behind the tip and away from the shaft
+   their motion is the continuum's (the FE underneath carries it from here on); with
+   ``chimney = 0`` the shaft passes through continuum without contact above the window
+   (the sleeve friction there is lost);
 5. kinds are re-assigned from the new window and the DEM ``Simulation`` is rebuilt with the
    contact history of surviving pairs carried over;
 6. the grains are generated to the local stress state: for ``settle_steps`` DEM steps the
@@ -61,7 +67,7 @@ from coupling.locate import owner_ranks
 from coupling.operators import FieldBasis
 from coupling.penetration import (CoupledPenetration, CouplingUnstable, PenetrationParameters,
                                   cone_clump, cone_record)
-from coupling.regions import Box, CouplingRegions
+from coupling.regions import Box, CouplingRegions, Union
 from dem import GHOST, Particles, Simulation, build_pairs
 from dem.bonded import hexagonal_lattice
 from dem.neighbours import carry_history
@@ -83,8 +89,9 @@ class MovingWindowParameters:
         depth: total penetration depth [m] (beyond what the initial window allows).
         trigger: the window moves when the tip is this close to its bottom.
         step: how far the bottom moves per move.
-        max_height: largest window height [m] (the Box's extent along the axis); None: the
-            window only grows.
+        max_height: largest window height [m] (the Box's extent along the axis, whose top
+            starts above the free surface); None: the window only grows. A top that would lie
+            less than a ghost band below the surface stays where it was.
         settle_steps: DEM steps of settling after a move (ghosts and cone held).
         servo_cycles: the second half of the settle is split into this many parts; before
             each, the radii of the grains being generated are scaled so that their axial
@@ -98,6 +105,10 @@ class MovingWindowParameters:
         overlap_tolerance: overlap left after the push-apart, fraction of the mean radius.
         max_moves: a run stops moving the window after this many moves.
         seed: of the new grains' lattice jitter and radii.
+        chimney: once the window travels, the grains within this many cone radii of the axis
+            stay grains up to the free surface (:meth:`MovingWindowPenetration.
+            _window_shape`); 0: the whole width becomes continuum behind the tip, under a
+            ghost band.
     """
 
     depth: float = 0.08
@@ -112,10 +123,13 @@ class MovingWindowParameters:
     overlap_tolerance: float = 1e-3
     max_moves: int = 50
     seed: int = 7
+    chimney: float = 2.5
 
     def __post_init__(self):
         if not (np.isfinite(self.settle_hold) and self.settle_hold >= 0):
             raise ValueError(f"settle_hold must be >= 0, got {self.settle_hold!r}")
+        if not (np.isfinite(self.chimney) and self.chimney >= 0):
+            raise ValueError(f"chimney must be >= 0 cone radii, got {self.chimney!r}")
         for name in ("depth", "trigger", "step", "overlap_tolerance"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -337,11 +351,13 @@ class MovingWindowPenetration(CoupledPenetration):
     """
 
     def __init__(self, prm: PenetrationParameters, moving: MovingWindowParameters, comm, log=print):
+        self.moving = moving   # before the parent's set-up: it sizes the mesh (_refined_depth)
         super().__init__(prm, comm, log=log)
         self._interface_bc = self.problem.bcs[-1]   # appended by the parent's interface
         # where the initial window's lattice starts (coupling.penetration: window + band)
         self._lattice_origin = np.array(self.regions.window.lo) - self.regions.ghost_width
-        self.moving = moving
+        self._wide, self._top0 = self.regions.window, self.regions.window.hi[self.sim.p.dim - 1]
+        self.x_base = self.x_ref.copy()   # grains where the continuum is undeformed (_base)
         self.axis = self.sim.p.dim - 1
         self.depth = 0.0
         self.moves: list[dict] = []
@@ -356,6 +372,16 @@ class MovingWindowPenetration(CoupledPenetration):
         p, n = self.sim.p, self.n_grains
         self._rebuild_simulation(p.x[:n], p.v[:n], p.omega[:n], p.radius[:n], self.kinds,
                                  np.arange(n), same_clump=False)
+
+    def _refined_depth(self) -> float:
+        """The deepest bottom the window can reach: the tip at ``moving.depth`` with the
+        window moved ``step`` below the trigger distance, and one step to spare. Coarse elements
+        under a window that moved out of the refined zone (15 mm against 6 mm in the demo)
+        hold few grains per node: the projection and the ghosts then fed each other until
+        the ghost band broke apart (at 53-58 mm in the demo with ``trigger = 12``)."""
+        prm, mv = self.prm, self.moving
+        reach = mv.depth + (mv.trigger + 2 * mv.step) * 2 * prm.radius
+        return max(prm.window_depth, reach)
 
     # ---- state --------------------------------------------------------------------------
     def tip(self) -> float:
@@ -372,6 +398,16 @@ class MovingWindowPenetration(CoupledPenetration):
 
     def _displacement(self, X):
         return field_at(self.problem.V, self.problem.w, X, 0)
+
+    def _base(self, x, X):
+        """Where grains at x (n, 3) with reference positions X are when the continuum is
+        undeformed: ``x - u(X)``, which is X itself where :func:`reference_positions`
+        converged. A grain heaved beyond the mesh has its X clamped inside it; its ghost
+        motion ``N(X) (w - w_old)`` is added to this base instead of to X, or it would jump
+        by the residual (up to 22 mm in the demo) at the first step after the move."""
+        base = np.array(x, float, copy=True)
+        base[:, : self.sim.p.dim] -= self._displacement(X)
+        return base
 
     def _clamp(self, X):
         """Points moved into the chamber's box (a hair inside, so that a cell holds them)."""
@@ -450,7 +486,9 @@ class MovingWindowPenetration(CoupledPenetration):
         the cone (a strip of two cone radii either side of the axis left out)."""
         d, ax, dim = 2 * self.prm.radius, self.axis, self.sim.p.dim
         # the ghost band belongs to the same packing: include it for a larger sample
-        lo, hi = self._box(self.regions.window.lo[ax] - self.regions.ghost_width, self.surface - 2 * d,
+        # (below the top of the full-width part: above it only the chimney holds grains)
+        lo, hi = self._box(self.regions.window.lo[ax] - self.regions.ghost_width,
+                           min(self.surface - 2 * d, self._wide.hi[ax]),
                            lateral_margin=self.regions.ghost_width)
         X = self.x_ref[:, :dim]
         lateral = [k for k in range(dim) if k != ax]
@@ -460,6 +498,29 @@ class MovingWindowPenetration(CoupledPenetration):
         measure = np.pi * r**2 if dim == 2 else 4 / 3 * np.pi * r**3
         cross = np.prod((hi - lo)[lateral]) - (2 * strip if dim == 2 else np.pi * strip**2)
         return float(measure.sum() / (cross * (hi - lo)[ax]))
+
+    # ---- the window's shape ------------------------------------------------------------
+    def _window_shape(self, wide: Box):
+        """The window for the full-width box ``wide``: itself while its top is the initial
+        window's (above the free surface), else with a chimney, the column of ``chimney``
+        cone radii about the axis from ``wide`` up to that top, added.
+
+        Converting the grains behind the tip back to continuum across the whole width put a
+        ghost band on top of them that follows the FE, which moves elastically: the heave the
+        cone drives around its shaft pressed the grains against a lid that does not yield
+        (tip resistance 2-5x that of a window that only grows). Without any top (the grains
+        above removed, their weight put on the top rows), the free grains' heave, projected
+        into the FE, lifted the ghosts under them, which lifted the grains: the window rose
+        by 20 mm within 15 mm of penetration. The chimney keeps the free surface around the
+        shaft (the heave and the sleeve friction stay grain-scale) and converts the grains
+        behind the tip and away from the shaft, where the continuum is a fair model.
+        """
+        ax, c = self.axis, self.moving.chimney * self.prm.cone_radius
+        if c <= 0 or wide.hi[ax] >= self._top0:
+            return wide
+        lo, hi = [-c] * len(wide.lo), [c] * len(wide.lo)
+        lo[ax], hi[ax] = wide.lo[ax], self._top0
+        return Union((wide, Box(tuple(lo), tuple(hi))))
 
     # ---- the move -----------------------------------------------------------------------
     def _new_grains(self, old: CouplingRegions, new: CouplingRegions, fraction, rng):
@@ -490,13 +551,20 @@ class MovingWindowPenetration(CoupledPenetration):
         # the layer the new grains will carry: the free grains just above the old bottom
         ref_lo, ref_hi = self._box(old_lo, old_lo + band)
         stress_layer_before = self._grain_stress(ref_lo, ref_hi)
-        regions = CouplingRegions(moved_window(old_regions.window, mv.step * d, mv.max_height, ax),
-                                  band, old_regions.handshake)
+        wide = moved_window(self._wide, mv.step * d, mv.max_height, ax)
+        if wide.hi[ax] > self.surface - band and wide.hi[ax] < self._top0:
+            # a top band among the heaved grains would act as a lid on them: not yet
+            hi = list(wide.hi)
+            hi[ax] = self._top0
+            wide = Box(wide.lo, tuple(hi))
+        regions = CouplingRegions(self._window_shape(wide), band, old_regions.handshake)
+        self._wide = wide
         # ---- survivors: reference positions from the current FE field, kinds in the new window
         X_old, res_old = reference_positions(p.x[:n], self._displacement, start=self.x_ref,
                                              clamp=self._clamp)
         kinds_old = regions.particle_kinds(X_old[:, :dim])
         keep = np.flatnonzero(kinds_old >= 0)
+        base_old = self._base(p.x[:n], X_old)
         # ---- new grains: lattice in the reference configuration, mapped by the FE fields
         fraction = self._packing_fraction()
         rng = np.random.default_rng(mv.seed + len(self.moves))
@@ -535,11 +603,13 @@ class MovingWindowPenetration(CoupledPenetration):
         # ---- the new DEM and coupling
         new_of_old = np.full(n, -1, np.int64)
         new_of_old[keep] = np.arange(len(keep))
+        X_all, kinds_all = np.vstack([X_old[keep], X_new]), np.concatenate([kinds_old[keep], kinds_new])
         carried = self._rebuild_simulation(
             np.vstack([p.x[keep], x_new]), np.vstack([p.v[keep], v_new]),
             np.vstack([p.omega[keep], w_new]), np.concatenate([p.radius[keep], r_new]),
-            np.concatenate([kinds_old[keep], kinds_new]), new_of_old)
-        self.x_ref = np.vstack([X_old[keep], X_new])
+            kinds_all, new_of_old)
+        self.x_ref = X_all
+        self.x_base = np.vstack([base_old[keep], self._base(x_new, X_new)])
         self.regions = regions
         after_rebuild = self._energies()
         # ---- settle: ghosts at the FE positions, the cone paused, the generated grains (all
@@ -565,9 +635,10 @@ class MovingWindowPenetration(CoupledPenetration):
         target = target_tensor[ax, ax]
         # the settle is part of the generation, not a motion of the continuum: the generated
         # grains' reference positions follow, so that the next projection finds the FE's values
+        settled = self.sim.p.x[: self.n_grains][generated]
         self.x_ref[generated], res_settled = reference_positions(
-            self.sim.p.x[: self.n_grains][generated], self._displacement,
-            start=self.x_ref[generated], clamp=self._clamp)
+            settled, self._displacement, start=self.x_ref[generated], clamp=self._clamp)
+        self.x_base[generated] = self._base(settled, self.x_ref[generated])
         self._rebuild_coupling()
         sigma_fe = fe_stress_average(self.problem, new_lo, new_hi)
         centre = 0.5 * (new_lo[ax] + new_hi[ax])
@@ -584,7 +655,8 @@ class MovingWindowPenetration(CoupledPenetration):
                                        "new": float(res_new.max(initial=0.0)),
                                        "settled": float(res_settled.max(initial=0.0))},
             "reference_unresolved": int((res_old[keep] > 1e-9).sum()), "packing_fraction_target": fraction,
-            "contacts_carried": carried, "held_in_settle": held, "grains": self.n_grains,
+            "contacts_carried": carried, "held_in_settle": held,
+            "window_wide_hi": list(self._wide.hi), "grains": self.n_grains,
             "servo": servo,
             "energy_before": before, "energy_after_rebuild": after_rebuild,
             "energy_after_settle": after_settle,
@@ -720,7 +792,7 @@ class MovingWindowPenetration(CoupledPenetration):
         st.predict()
         for s in range(1, prm.substeps + 1):
             frac = s / prm.substeps
-            p.x[self.ghost_local, : self.axis + 1] = (self.x_ref[self.ghost_local, : self.axis + 1]
+            p.x[self.ghost_local, : self.axis + 1] = (self.x_base[self.ghost_local, : self.axis + 1]
                                                       + (1 - frac) * g_prev[0] + frac * g_next[0])
             p.v[self.ghost_local, : self.axis + 1] = (g_next[0] - g_prev[0]) / self.dt_fe
             self.depth += prm.velocity * sim.dt
@@ -731,7 +803,7 @@ class MovingWindowPenetration(CoupledPenetration):
         n_u = iface.fields[0].prescribed.size
         old = iface.prescribed_values()
         D = old.copy()        # phi stays the FE's own (grain spins are not a displacement field)
-        D[:n_u] = iface.project_displacement(p.x[:n, : self.axis + 1] - self.x_ref[:, : self.axis + 1])
+        D[:n_u] = iface.project_displacement(p.x[:n, : self.axis + 1] - self.x_base[:, : self.axis + 1])
         iface.set_prescribed(old + prm.relaxation * (D - old))
         st.solve()
         st.finish()

@@ -456,11 +456,11 @@ class CoupledPenetration:
         # ---- continuum: chamber, stiffness from the settled contacts
         if dim == 2:
             data = build_chamber(comm, 2, width=prm.chamber_width, depth=prm.chamber_depth,
-                                 window_width=2 * (a + band), window_depth=b + band,
+                                 window_width=2 * (a + band), window_depth=self._refined_depth() + band,
                                  h_window=prm.element_size_window, h_far=prm.element_size_far)
         else:
             data = build_chamber(comm, 3, radius=prm.chamber_width / 2, depth=prm.chamber_depth,
-                                 window_radius=np.sqrt(2) * (a + band), window_depth=b + band,
+                                 window_radius=np.sqrt(2) * (a + band), window_depth=self._refined_depth() + band,
                                  h_window=prm.element_size_window, h_far=prm.element_size_far)
         data.mesh.geometry.x[:, ax] += self.surface
         names = {k: tag for k, (gd, tag) in data.physical_groups.items() if gd == dim - 1}
@@ -656,6 +656,11 @@ class CoupledPenetration:
             if progress is not None:
                 progress(self.history[-1])
         return self.history
+
+    def _refined_depth(self) -> float:
+        """Depth [m] down to which the chamber's mesh is refined to the window's element
+        size: the window's (a window that moves needs more)."""
+        return self.prm.window_depth
 
     # ---- checkpoints --------------------------------------------------------------------
     def save_checkpoint(self, directory) -> Path:

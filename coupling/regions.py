@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Ball", "Box", "CouplingRegions", "Shape"]
+__all__ = ["Ball", "Box", "CouplingRegions", "Shape", "Union"]
 
 
 def _as_points(x: np.ndarray, dim: int) -> np.ndarray:
@@ -71,7 +71,35 @@ class Ball:
         return np.linalg.norm(_as_points(x, c.size) - c, axis=1) - self.radius
 
 
-Shape = Box | Ball
+@dataclass(frozen=True)
+class Union:
+    """The union of boxes (a window with a chimney, :mod:`coupling.moving_window`).
+
+    ``signed_distance`` is the smallest of the members': exact outside, and inside it is
+    the depth below the nearest member's surface, so a point where two boxes meet counts as
+    deep inside (the union has no face there). ``lo`` and ``hi`` give the bounding box."""
+
+    boxes: tuple[Box, ...]
+
+    def __post_init__(self) -> None:
+        if not self.boxes or not all(isinstance(b, Box) for b in self.boxes):
+            raise ValueError(f"Union.boxes must be one or more Box, got {self.boxes!r}")
+        if len({len(b.lo) for b in self.boxes}) != 1:
+            raise ValueError("Union.boxes must all have the same dimension")
+
+    @property
+    def lo(self) -> tuple[float, ...]:
+        return tuple(np.min([b.lo for b in self.boxes], axis=0).tolist())
+
+    @property
+    def hi(self) -> tuple[float, ...]:
+        return tuple(np.max([b.hi for b in self.boxes], axis=0).tolist())
+
+    def signed_distance(self, x: np.ndarray) -> np.ndarray:
+        return np.min([b.signed_distance(x) for b in self.boxes], axis=0)
+
+
+Shape = Box | Ball | Union
 
 
 @dataclass(frozen=True)
