@@ -16,7 +16,7 @@ against the reference with the same seed. The two references against each other 
 noise floor: the scatter of q_c between packings of the same sand. Cost: wall time of the
 push (of which the moves), and the grains simulated (mean over the FE steps).
 
-Run: ``python benchmarks/moving_window.py [--out DIR]`` (about 12 minutes on one core; each
+Run: ``python benchmarks/moving_window.py [--out DIR]`` (about 10 minutes on one core; each
 case runs in its own process, one after the other). ``GRANFE_SHORT=1``: one seed.
 """
 

@@ -92,7 +92,8 @@ def _run_penetration(scene, args, restart: bool = False) -> int:
     try:
         run_penetration(scene.parameters(), out, comm, frames=o.frames, fields=o.fields,
                         particles=o.particles, png=o.png, progress=not args.no_progress,
-                        checkpoint_every=o.checkpoint_every, restart=restart)
+                        checkpoint_every=o.checkpoint_every, restart=restart,
+                        moving=scene.moving_parameters())
     except FileNotFoundError as err:
         if comm.rank == 0:
             print(f"granfe: {err}", file=sys.stderr)

@@ -48,7 +48,15 @@ One move (:meth:`MovingWindowPenetration.move`), all in the FE's reference confi
 7. the settle is part of the generation: the generated grains' reference positions are
    solved again at their settled places (``X = x - u(X)``), then the ``CouplingInterface``
    is rebuilt (its Dirichlet condition replaced, prescribed values taken from the current
-   FE state) and the time stepper with the FE state, velocity and acceleration copied.
+   FE state) and the time stepper with the FE state, velocity and acceleration copied;
+8. dofs the move released (prescribed before, free now: continuum behind the tip) carry the
+   grains' flow, no elastic equilibrium: their out-of-balance force goes into a load ``f0``
+   (:meth:`MovingWindowPenetration._release`), so the continuum starts from the state the
+   grains left instead of springing back.
+
+In 3D the continuum carries gravity and the geostatic confinement: the settled grains'
+reference positions are solved against that state at the start (``X + u_geo(X) = x``) and
+the coupling counts total displacements from there.
 """
 
 from __future__ import annotations
@@ -59,6 +67,7 @@ from dataclasses import dataclass
 import dolfinx_solver  # noqa: F401
 
 import numpy as np
+import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
@@ -66,7 +75,7 @@ from coupling.interface import CouplingInterface
 from coupling.locate import owner_ranks
 from coupling.operators import FieldBasis
 from coupling.penetration import (CoupledPenetration, CouplingUnstable, PenetrationParameters,
-                                  cone_clump, cone_record)
+                                  cone_clump, cone_record, penetrator_clump)
 from coupling.regions import Box, CouplingRegions, Union
 from dem import GHOST, Particles, Simulation, build_pairs
 from dem.bonded import hexagonal_lattice
@@ -74,11 +83,12 @@ from dem.neighbours import carry_history
 from dem.packing import push_apart
 from dem.stress import contact_points, love_weber_stress
 from granfe.dynamics import GeneralizedAlpha
+from granfe.forms import internal_work
 
 __all__ = ["MovingWindowParameters", "MovingWindowPenetration", "tip_near_bottom", "moved_window",
            "lattice_fill", "continued_lattice", "push_apart", "field_at", "reference_positions",
            "carry_pair_history", "fe_stress_average", "isotropic_modulus", "servo_growth",
-           "scale_radii"]
+           "scale_radii", "refined_depth"]
 
 
 @dataclass(frozen=True)
@@ -314,6 +324,23 @@ def fe_stress_average(problem, lo, hi) -> np.ndarray:
                                      MPI.SUM) / area for j in range(gdim)] for i in range(gdim)])
 
 
+def refined_depth(prm: PenetrationParameters, mv: MovingWindowParameters) -> float:
+    """Depth [m] down to which the chamber is meshed at the window's element size: the
+    deepest bottom the window can reach (the tip at ``mv.depth`` with the window moved
+    ``step`` below the trigger distance, and one step to spare). Coarse elements under a
+    window that moved out of the refined zone (15 mm against 6 mm in the demo) hold few
+    grains per node: the projection and the ghosts then fed each other until the ghost band
+    broke apart (at 53-58 mm in the demo with ``trigger = 12``). Raises ValueError naming
+    ``chamber_depth`` when the chamber is too shallow for it."""
+    reach = mv.depth + (mv.trigger + 2 * mv.step) * 2 * prm.radius
+    if reach + (prm.ghost_width + 1) * 2 * prm.radius >= prm.chamber_depth:
+        raise ValueError(f"chamber_depth = {prm.chamber_depth} m is too shallow for a window "
+                         f"that follows the cone to depth = {mv.depth} m (its bottom reaches "
+                         f"{reach:.3g} m, plus the ghost band): deepen the chamber or lower "
+                         f"the depth, trigger or step")
+    return max(prm.window_depth, reach)
+
+
 # ---- stress of the grains being generated ---------------------------------------------------
 def isotropic_modulus(material, dim: int) -> float:
     """d sigma_mean / d e [Pa] of the continuum under the isotropic strain ``e I``:
@@ -364,7 +391,10 @@ class MovingWindowPenetration(CoupledPenetration):
         self._stepper_count = 0
         # a shaft long enough for the whole run (the parent sized it for prm.depth)
         rc = prm.cone_radius
-        pen, r_pen, on_cone = cone_clump(rc, prm.apex_deg, moving.depth + 3 * rc, prm.radius)
+        if prm.dim == 2:
+            pen, r_pen, on_cone = cone_clump(rc, prm.apex_deg, moving.depth + 3 * rc, prm.radius)
+        else:
+            pen, r_pen, on_cone = penetrator_clump(prm, moving.depth + 3 * rc)
         pen[:, self.axis] += self.pen0[:, self.axis].min() - pen[:, self.axis].min()
         self.pen0, self.on_cone, self._r_pen = pen, on_cone, r_pen
         clump = Particles.spheres(pen, r_pen, prm.density, dim=self.sim.p.dim, kind=GHOST)
@@ -372,16 +402,28 @@ class MovingWindowPenetration(CoupledPenetration):
         p, n = self.sim.p, self.n_grains
         self._rebuild_simulation(p.x[:n], p.v[:n], p.omega[:n], p.radius[:n], self.kinds,
                                  np.arange(n), same_clump=False)
+        if prm.dim == 3:
+            # the FE holds the geostatic state (the grains settled into it): the grains'
+            # reference positions solve X + u(X) = x with u = w_geo, and the coupling counts
+            # the total displacement from there (no separate w_geo offsets as in the parent)
+            x = self.sim.p.x[:n]
+            self.x_ref, _ = reference_positions(x, self._displacement, clamp=self._clamp)
+            self.x_base = self._base(x, self.x_ref)
+        # the load that keeps released dofs where the grains left them (_release), in the
+        # forms of the stepper built next
+        self._f0 = fem.Function(self.problem.V, name="release_load")
+        f0_u, f0_phi = ufl.split(self._f0)
+        self.problem.body_force(f0_u)
+        self.problem.body_couple(f0_phi)
+        self._mass_solver = None
+        self._rebuild_coupling()
 
     def _refined_depth(self) -> float:
-        """The deepest bottom the window can reach: the tip at ``moving.depth`` with the
-        window moved ``step`` below the trigger distance, and one step to spare. Coarse elements
-        under a window that moved out of the refined zone (15 mm against 6 mm in the demo)
-        hold few grains per node: the projection and the ghosts then fed each other until
-        the ghost band broke apart (at 53-58 mm in the demo with ``trigger = 12``)."""
-        prm, mv = self.prm, self.moving
-        reach = mv.depth + (mv.trigger + 2 * mv.step) * 2 * prm.radius
-        return max(prm.window_depth, reach)
+        return refined_depth(self.prm, self.moving)
+
+    @property
+    def n_steps(self) -> int:
+        return int(np.ceil(self.moving.depth / self.prm.velocity / self.dt_fe))
 
     # ---- state --------------------------------------------------------------------------
     def tip(self) -> float:
@@ -563,6 +605,9 @@ class MovingWindowPenetration(CoupledPenetration):
         X_old, res_old = reference_positions(p.x[:n], self._displacement, start=self.x_ref,
                                              clamp=self._clamp)
         kinds_old = regions.particle_kinds(X_old[:, :dim])
+        # a ghost follows the continuum at its reference position: one heaved beyond the
+        # mesh (X clamped, unresolved) would hang on the continuum's free surface
+        kinds_old[(kinds_old == 1) & (res_old > 1e-9)] = -1
         keep = np.flatnonzero(kinds_old >= 0)
         base_old = self._base(p.x[:n], X_old)
         # ---- new grains: lattice in the reference configuration, mapped by the FE fields
@@ -639,7 +684,9 @@ class MovingWindowPenetration(CoupledPenetration):
         self.x_ref[generated], res_settled = reference_positions(
             settled, self._displacement, start=self.x_ref[generated], clamp=self._clamp)
         self.x_base[generated] = self._base(settled, self.x_ref[generated])
+        old_interface = self.interface
         self._rebuild_coupling()
+        released = self._release(old_interface)
         sigma_fe = fe_stress_average(self.problem, new_lo, new_hi)
         centre = 0.5 * (new_lo[ax] + new_hi[ax])
         geostatic = -self.material_fe.rho * self.prm.gravity * (self.surface - centre)
@@ -655,7 +702,7 @@ class MovingWindowPenetration(CoupledPenetration):
                                        "new": float(res_new.max(initial=0.0)),
                                        "settled": float(res_settled.max(initial=0.0))},
             "reference_unresolved": int((res_old[keep] > 1e-9).sum()), "packing_fraction_target": fraction,
-            "contacts_carried": carried, "held_in_settle": held,
+            "contacts_carried": carried, "held_in_settle": held, "released_dofs": released,
             "window_wide_hi": list(self._wide.hi), "grains": self.n_grains,
             "servo": servo,
             "energy_before": before, "energy_after_rebuild": after_rebuild,
@@ -753,6 +800,62 @@ class MovingWindowPenetration(CoupledPenetration):
             p.kind[:] = kind
         return int(len(near)), traces
 
+    def _release(self, old_interface) -> int:
+        """Dofs prescribed before the move and free after it (the continuum that takes over
+        from grains behind the tip) carry whatever the grains did there, a state that is no
+        elastic equilibrium: left alone the continuum sprang back within two FE steps, its
+        ghosts hit the grains beside the chimney at 2-4 m/s and threw some out at 12 m/s.
+        The out-of-balance force ``r = K w - f`` at those dofs is added to the load ``f0``
+        (its Riesz representative, ``M_L2 f0 = r``) and their velocity and acceleration are
+        zeroed, so that the state the grains left is where the continuum starts from, at
+        rest (their flow stays a permanent deformation). The acceleration stays out of
+        ``r``: at prescribed dofs it is the second difference of the relaxed projections,
+        noise that as a constant load drove a surface node 60 mm within a step.
+        Returns the number of released dofs (all ranks). Collective."""
+        from dolfinx.fem.petsc import assemble_vector
+        from petsc4py import PETSc
+
+        problem, st, comm = self.problem, self.stepper, self.comm
+        before = np.concatenate([f.prescribed for f in old_interface.fields])
+        after = np.concatenate([f.prescribed for f in self.interface.fields])
+        released = np.setdiff1d(before, after)
+        count = comm.allreduce(len(released), MPI.SUM)
+        if count == 0:
+            return 0
+        V, c = problem.V, problem.constants
+        du, dphi = ufl.TestFunctions(V)
+        u, phi = ufl.split(problem.w)
+        F = internal_work(u, phi, du, dphi, c) * problem.dx
+        r = assemble_vector(fem.form(F - problem.external_work(du, dphi)))
+        r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        keep = np.zeros(r.getLocalSize(), bool)
+        keep[released] = True
+        with r.localForm() as local:
+            local.array[: len(keep)][~keep] = 0.0
+        if self._mass_solver is None:
+            from dolfinx.fem.petsc import assemble_matrix
+            p, q = ufl.TrialFunction(V), ufl.TestFunction(V)
+            M = assemble_matrix(fem.form(ufl.inner(p, q) * problem.dx))
+            M.assemble()
+            ksp = PETSc.KSP().create(comm)
+            ksp.setOperators(M)
+            ksp.setType("preonly")
+            ksp.getPC().setType("lu")
+            ksp.getPC().setFactorSolverType("mumps")
+            self._mass_solver = (ksp, M)
+        ksp, M = self._mass_solver
+        df = M.createVecRight()
+        ksp.solve(r, df)
+        n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+        self._f0.x.array[:n_owned] += df.array_r[:n_owned]
+        self._f0.x.scatter_forward()
+        for rate in (st.v, st.a):
+            rate.x.array[released] = 0.0
+            rate.x.scatter_forward()
+        for v in (r, df):
+            v.destroy()
+        return int(count)
+
     def _rebuild_coupling(self):
         """Interface and stepper for the current grains; the FE state carries on."""
         problem, old = self.problem, self.stepper
@@ -773,9 +876,8 @@ class MovingWindowPenetration(CoupledPenetration):
     def run(self, progress=None):
         """Push the cone to ``moving.depth``, moving the window whenever the tip nears its
         bottom. The coupled step is the parent's (ghosts from the FE, projection, SNES)."""
-        n_steps = int(np.ceil(self.moving.depth / self.prm.velocity / self.dt_fe))
         g_prev = self.interface.ghost_motion()
-        for k in range(n_steps):
+        for k in range(self.n_steps):
             if self.needs_move():
                 self.move()
                 g_prev = self.interface.ghost_motion()

@@ -22,12 +22,14 @@ __all__ = ["run_penetration"]
 def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames: int = 5,
                     fields: bool = True, particles: bool = True, png: bool = True,
                     progress: bool = True, log=None, checkpoint_every: int = 0,
-                    restart: bool = False) -> dict:
+                    restart: bool = False, moving=None) -> dict:
     """Set up, run and write a coupled penetration into ``out``; returns the results dict.
 
     ``checkpoint_every`` > 0 writes ``out/checkpoint`` every that many FE steps (not after the
     last); ``restart`` continues from it (same parameters and rank count) instead of settling,
-    writing frames as ``*_from<step>`` series next to the first run's.
+    writing frames as ``*_from<step>`` series next to the first run's. ``moving``
+    (:class:`coupling.moving_window.MovingWindowParameters`): the window follows the
+    penetrator to ``moving.depth`` (no checkpoints); ``results.json`` then lists the moves.
     """
     from coupling.penetration import CouplingUnstable
     from dem.errors import BlowUpError, DemError
@@ -43,8 +45,15 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
         out.mkdir(parents=True, exist_ok=True)
     comm.barrier()
     t0 = time.perf_counter()
+    if moving is not None and (restart or checkpoint_every):
+        raise ValueError("a window that follows the penetrator writes no checkpoints yet: "
+                         "checkpoint_every must be 0 and restart False")
     try:
-        cpt = CoupledPenetration(prm, comm, log=log, checkpoint=out / "checkpoint" if restart else None)
+        if moving is None:
+            cpt = CoupledPenetration(prm, comm, log=log, checkpoint=out / "checkpoint" if restart else None)
+        else:
+            from coupling.moving_window import MovingWindowPenetration
+            cpt = MovingWindowPenetration(prm, moving, comm, log=log)
     except (BlowUpError, DemError, FloatingPointError, ValueError) as err:
         # failed while settling or deriving the continuum: keep the grains' last good state
         where = out / "last_good"
@@ -121,7 +130,7 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
                "dem_steps": cpt.sim.nsteps, "setup_time_s": t_setup, "run_time_s": t_run,
                "fe_steps_run": len(pushed), "restarted_from_step": start,
                "wall_time_per_fe_step_s": float(np.median([h["wall_time"] for h in pushed])) if pushed else None,
-               "ranks": comm.size, "history": history,
+               "ranks": comm.size, "history": history, "window_moves": getattr(cpt, "moves", []),
                "q_c_mean_last_half": float(np.mean([h["q_c"] for h in history[len(history) // 2:]]))}
     if comm.rank == 0:
         (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
@@ -158,7 +167,9 @@ def _picture(cpt, path):
 
     prm, p = cpt.prm, cpt.sim.p
     W, s = 0.5 * prm.chamber_width, cpt.surface
-    low = s - min(0.12, prm.chamber_depth)
+    # down to the lowest grain (a window that followed the cone reaches deeper)
+    ax = prm.dim - 1
+    low = max(min(s - 0.12, float(p.x[: cpt.n_grains, ax].min()) - 4 * prm.radius), s - prm.chamber_depth)
     title = (f"displacement magnitude of the continuum [m]; grains (red: ghosts, {prm.shape}), depth "
              f"{cpt.depth * 100:.1f} cm")
     if prm.dim == 2:
@@ -193,4 +204,4 @@ def _picture(cpt, path):
 
     reach = 1.5 * (prm.window_half_width + prm.ghost_width * d)
     render_png(cpt.problem, path, "u_magnitude", warp=0, overlay=overlay,
-               box=(-reach, reach, -reach, 0.0, s - 1.5 * prm.window_depth, s + 0.01), title=title)
+               box=(-reach, reach, -reach, 0.0, min(s - 1.5 * prm.window_depth, low), s + 0.01), title=title)

@@ -72,6 +72,8 @@ def _summarise_penetration(scene) -> dict:
     r_min = np.array([prm.radius * (1 - prm.jitter)])
     dt = dem_time_step(prm, r_min)
     if dt is None:
+        # the DEM's default step counts every disk, the cone's (half a grain radius) too
+        r_min = np.minimum(r_min, 0.5 * prm.radius)
         probe = Particles.spheres(np.zeros((1, 3)), r_min, prm.density, dim=2)
         dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [contact_material(prm)])  # the DEM's default
     # the size field ramps from fine to coarse over about the window size again
@@ -85,11 +87,20 @@ def _summarise_penetration(scene) -> dict:
         chamber = np.pi * prm.chamber_width**2 / 4 * prm.chamber_depth
         nodes = (6 * window / hw**3 + 6 * chamber / hf**3) / 5
     dofs = (3 if dim == 2 else 6) * nodes
-    return {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
-            "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
-            "dem_steps_estimate": int((prm.settle_time + prm.depth / prm.velocity) / dt),
-            "fe_steps": int(np.ceil(prm.depth / prm.velocity / (prm.substeps * dt))),
-            "memory_estimate_MB_per_rank": _memory_mb(1.25 * grains, dofs)}
+    depth = scene.penetrator.depth   # the whole push (more than prm.depth if the window follows)
+    out = {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
+           "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
+           "dem_steps_estimate": int((prm.settle_time + depth / prm.velocity) / dt),
+           "fe_steps": int(np.ceil(depth / prm.velocity / (prm.substeps * dt))),
+           "memory_estimate_MB_per_rank": _memory_mb(1.25 * grains, dofs)}
+    mv = scene.moving_parameters()
+    if mv is not None:
+        # each move adds ``step`` diameters of window depth (fewer once it travels)
+        tip_room = prm.window_depth - mv.trigger * d
+        moves = max(0, int(np.ceil((depth - tip_room) / (mv.step * d))))
+        out.update(window_follows=True, window_moves_estimate=moves,
+                   dem_steps_estimate=out["dem_steps_estimate"] + moves * mv.settle_steps)
+    return out
 
 
 def _memory_mb(particles: float, dofs: float) -> float:

@@ -277,6 +277,27 @@ class PenetrationOutput:
             raise SceneError(f"output.checkpoint_every must be >= 0, got {self.checkpoint_every!r}")
 
 
+@dataclass(frozen=True)
+class Follow:
+    """The DE window follows the penetrator (:mod:`coupling.moving_window`, seed 000 Fig. 3):
+    off unless ``enabled``; then ``penetrator.depth`` is the whole push, which the initial
+    window need not hold. ``trigger`` and ``step`` in grain diameters, ``max_height`` [m]
+    (0: the window only grows), ``chimney`` in penetrator radii (0: none)."""
+
+    enabled: bool = False
+    trigger: float = 18.0
+    step: float = 6.0
+    max_height: float = 0.0
+    chimney: float = 2.5
+    settle_steps: int = 8000
+    servo_rate: float = 0.005
+
+
+# MovingWindowParameters field -> section.key of the scene
+_FOLLOW_KEYS = {"depth": "penetrator.depth", "trigger": "follow.trigger", "step": "follow.step",
+                "max_height": "follow.max_height", "chimney": "follow.chimney",
+                "settle_steps": "follow.settle_steps", "servo_rate": "follow.servo_rate"}
+
 # PenetrationParameters field -> section.key of the scene
 _PENETRATION_KEYS = {
     "chamber_width": "chamber.width", "chamber_depth": "chamber.depth",
@@ -307,9 +328,36 @@ class PenetrationScene(_Tables):
     penetrator: Cone = field(default_factory=Cone)
     coupling: Exchange = field(default_factory=Exchange)
     output: PenetrationOutput = field(default_factory=PenetrationOutput)
+    follow: Follow = field(default_factory=Follow)
 
     def __post_init__(self):
         self.parameters()  # validate the combination, naming the scene key
+        if self.follow.enabled:
+            self.moving_parameters()
+            if self.output.checkpoint_every:
+                raise SceneError("output.checkpoint_every must be 0 when follow.enabled = true: a "
+                                 "window that follows the penetrator writes no checkpoints yet")
+
+    def moving_parameters(self):
+        """The :class:`coupling.moving_window.MovingWindowParameters` of this scene, or None
+        when the window does not follow the penetrator."""
+        from coupling.moving_window import MovingWindowParameters, refined_depth
+
+        f = self.follow
+        if not f.enabled:
+            return None
+        try:
+            mv = MovingWindowParameters(
+                depth=self.penetrator.depth, trigger=f.trigger, step=f.step,
+                max_height=f.max_height if f.max_height > 0 else None, chimney=f.chimney,
+                settle_steps=f.settle_steps, servo_rate=f.servo_rate)
+        except ValueError as err:
+            raise SceneError(_named(str(err), _FOLLOW_KEYS)) from None
+        try:
+            refined_depth(self.parameters(), mv)
+        except ValueError as err:
+            raise SceneError(_named(str(err), {"chamber_depth": "chamber.depth"})) from None
+        return mv
 
     def parameters(self):
         """The :class:`coupling.penetration.PenetrationParameters` of this scene."""
@@ -326,15 +374,21 @@ class PenetrationScene(_Tables):
             apex_deg=p.apex_deg, velocity=p.velocity, depth=p.depth, substeps=x.substeps,
             relaxation=x.relaxation, dim=self.scene.dimension, shape=p.shape,
             youngs_modulus=g.youngs_modulus)
+        if self.follow.enabled:
+            # the initial window holds half its depth of the push (the window then follows)
+            values["depth"] = min(p.depth, max(0.5 * (w.depth - 2 * p.radius), 1e-3 * w.depth))
         try:
             return PenetrationParameters(**values)
         except ValueError as err:
-            message = str(err)
-            for name, key in sorted(_PENETRATION_KEYS.items(), key=lambda kv: -len(kv[0])):
-                if message.startswith(name):
-                    message = key + message[len(name):]
-                    break
-            raise SceneError(message) from None
+            raise SceneError(_named(str(err), _PENETRATION_KEYS)) from None
+
+
+def _named(message: str, keys: dict) -> str:
+    """``message`` with its leading parameter name replaced by the scene's section.key."""
+    for name, key in sorted(keys.items(), key=lambda kv: -len(kv[0])):
+        if message.startswith(name):
+            return key + message[len(name):]
+    return message
 
 
 def _toml_value(v):

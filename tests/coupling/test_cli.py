@@ -142,3 +142,25 @@ def test_restart_without_checkpoint_is_named(tmp_path):
     proc = granfe("restart", str(tmp_path), "--no-progress")
     assert proc.returncode == 1
     assert "no complete checkpoint" in proc.stderr
+
+
+def test_follow_scene_moves_the_window(tmp_path):
+    """``[follow]``: the window of scenes/cpt_2d_follow.toml moves in a short push (its first
+    move before the push: 50 mm is less than the trigger distance); the moves are in
+    results.json; a follow scene asking for checkpoints, or too shallow a
+    chamber for its push, is refused naming the key."""
+    out = tmp_path / "follow"
+    proc = granfe("run", "scenes/cpt_2d_follow.toml", "--out", str(out), "--no-progress",
+                  "--set", "grains.settle_time=0.04", "--set", "penetrator.depth=0.012",
+                  "--set", "follow.settle_steps=1000", "--set", "output.png=false",
+                  "--set", "output.frames=1", "--set", "output.fields=false")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    moves = results["window_moves"]
+    assert len(moves) >= 1 and all(m["created"] > 0 for m in moves)
+    assert results["history"][-1]["depth"] >= 0.012 - 1e-9
+    assert results["history"][-1]["grains"] > results["history"][0]["grains"]
+    bad = granfe("check", "scenes/cpt_2d_follow.toml", "--set", "output.checkpoint_every=5")
+    assert bad.returncode != 0 and "output.checkpoint_every" in bad.stderr
+    deep = granfe("check", "scenes/cpt_2d_follow.toml", "--set", "penetrator.depth=0.15")
+    assert deep.returncode != 0 and "chamber.depth" in deep.stderr
