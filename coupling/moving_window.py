@@ -383,9 +383,9 @@ class MovingWindowPenetration(CoupledPenetration):
         self._interface_bc = self.problem.bcs[-1]   # appended by the parent's interface
         # where the initial window's lattice starts (coupling.penetration: window + band)
         self._lattice_origin = np.array(self.regions.window.lo) - self.regions.ghost_width
-        self._wide, self._top0 = self.regions.window, self.regions.window.hi[self.sim.p.dim - 1]
-        self.x_base = self.x_ref.copy()   # grains where the continuum is undeformed (_base)
         self.axis = self.sim.p.dim - 1
+        self._wide, self._top0 = self.regions.window, self.regions.window.hi[self.axis]
+        self.x_base = self.x_ref.copy()   # grains where the continuum is undeformed (_base)
         self.depth = 0.0
         self.moves: list[dict] = []
         self._stepper_count = 0

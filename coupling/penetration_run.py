@@ -14,7 +14,7 @@ import dolfinx_solver  # noqa: F401
 
 import numpy as np
 
-from coupling.penetration import CoupledPenetration, PenetrationParameters
+from coupling.penetration import VERTICAL, CoupledPenetration, PenetrationParameters
 
 __all__ = ["run_penetration"]
 
@@ -168,7 +168,7 @@ def _picture(cpt, path):
     prm, p = cpt.prm, cpt.sim.p
     W, s = 0.5 * prm.chamber_width, cpt.surface
     # down to the lowest grain (a window that followed the cone reaches deeper)
-    ax = prm.dim - 1
+    ax = VERTICAL[prm.dim]
     low = max(min(s - 0.12, float(p.x[: cpt.n_grains, ax].min()) - 4 * prm.radius), s - prm.chamber_depth)
     title = (f"displacement magnitude of the continuum [m]; grains (red: ghosts, {prm.shape}), depth "
              f"{cpt.depth * 100:.1f} cm")
