@@ -71,7 +71,7 @@ def run(gdim, n, degree, solver):
         t0 = time.perf_counter()
         problem.solve()
         times.append(comm.allreduce(time.perf_counter() - t0, MPI.MAX))
-    snes = problem._snes.solver
+    snes = problem.snes
     e = errors(problem, u_ex, phi_ex)
     imap = problem.V.dofmap.index_map
     return {

@@ -30,10 +30,11 @@ class _Field:
 
 
 class CouplingInterface:
-    """Operators between a micropolar FE problem and a set of particles.
+    """Operators between a continuum FE problem and a set of particles.
 
     Args:
-        problem: a :class:`granfe.problem.MicropolarProblem`; a Dirichlet condition on the
+        problem: a :class:`granfe.problem.ContinuumProblem` whose model has the fields
+            ``u`` and ``phi`` (:meth:`coupled_fields`); a Dirichlet condition on the
             prescribed dofs (values in :attr:`g`) is added to it.
         x: centroids (n, 3) of every coupled particle, identical on all ranks.
         kinds: (n,) 0 free, 1 ghost.
@@ -62,7 +63,7 @@ class CouplingInterface:
         self._locate(self.x)
         self.g = fem.Function(V, name="prescribed_values")
         bc_dofs, self.fields = [], []
-        for sub in (0, 1):
+        for sub in self.coupled_fields(problem):
             ghost = FieldBasis.build(V, self._ghost_points(self.x), sub=sub)
             free = FieldBasis.build(V, self._free_points(self.x), sub=sub)
             Vc, parent = V.sub(sub).collapse()
@@ -89,8 +90,19 @@ class CouplingInterface:
         # factorise the Jacobian once and reuse it
         problem.petsc_options.setdefault("snes_lag_jacobian", -2)
         problem.petsc_options.setdefault("snes_lag_jacobian_persists", True)
-        problem._snes = None
+        problem.invalidate()
         self.setup_time = time.perf_counter() - t0
+
+    @staticmethod
+    def coupled_fields(problem) -> tuple[int, int]:
+        """Indices of the fields the particles drive: ``u`` (their translations) and ``phi``
+        (their rotations). A continuum model coupled to grains must declare both."""
+        names = [f.name for f in problem.fields]
+        missing = [n for n in ("u", "phi") if n not in names]
+        if missing:
+            raise ValueError(f"the grains drive the fields u and phi; the {problem.model.name} "
+                             f"model has {names} (missing {missing})")
+        return names.index("u"), names.index("phi")
 
     def _locate(self, x: np.ndarray) -> None:
         """Which particles this rank holds (the owner of the cell containing each centroid)."""

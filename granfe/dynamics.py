@@ -1,6 +1,6 @@
-"""Implicit dynamics of the micropolar continuum: generalized-alpha (Chung & Hulbert 1993).
+"""Implicit dynamics of a continuum model: generalized-alpha (Chung & Hulbert 1993).
 
-Mass ``rho`` acts on u and rotary inertia ``rho j`` on phi. The spectral radius at
+The inertia is the model's (micropolar: mass ``rho`` on u, rotary inertia ``rho j`` on phi). The spectral radius at
 infinite frequency ``rho_inf`` in [0, 1] is the one damping parameter: ``rho_inf = 1``
 gives alpha_m = alpha_f = 1/2, beta = 1/4, gamma = 1/2, the trapezoidal (Newmark
 average acceleration) family, which conserves the energy of a linear elastic body
@@ -19,8 +19,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from granfe.forms import inertia_work, internal_work, kinetic_energy_density, strain, curvature, strain_energy_density
-from granfe.problem import MicropolarProblem
+from granfe.problem import ContinuumProblem
 
 __all__ = ["AlphaParameters", "GeneralizedAlpha"]
 
@@ -53,20 +52,16 @@ class AlphaParameters:
         return 0.25 * (1 + self.alpha_f - self.alpha_m) ** 2
 
 
-def _split(expr, gdim):
-    u = ufl.as_vector([expr[i] for i in range(gdim)])
-    phi = expr[gdim] if gdim == 2 else ufl.as_vector([expr[gdim + i] for i in range(3)])
-    return u, phi
-
-
 class GeneralizedAlpha:
-    """Time stepper over a :class:`MicropolarProblem` (its BCs, loads and solver options).
+    """Time stepper over a :class:`ContinuumProblem` (its BCs, loads and solver options).
 
     Loads given to the problem as ``fem.Constant`` are evaluated at ``t_{n+1-alpha_f}``:
-    update them (``.value``) before each :meth:`step` with :meth:`load_time`.
+    update them (``.value``) before each :meth:`step` with :meth:`load_time`. A model's
+    quadrature-point state is committed when a step is accepted (:meth:`finish`) and
+    restored when its solve fails.
     """
 
-    def __init__(self, problem: MicropolarProblem, dt: float, rho_inf: float = 1.0,
+    def __init__(self, problem: ContinuumProblem, dt: float, rho_inf: float = 1.0,
                  prefix: str | None = None):
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt (time step) must be a positive number in s, got {dt!r}")
@@ -78,17 +73,15 @@ class GeneralizedAlpha:
         self.w_old = fem.Function(V, name="w_old")
         self.v = fem.Function(V, name="velocity")
         self.a = fem.Function(V, name="acceleration")
-        w, c = problem.w, problem.constants
+        w, model, state = problem.w, problem.model, problem.state.committed
         dt_, b, g = self.dt, p.beta, p.gamma
         a_new = (w - self.w_old - dt_ * self.v) / (b * dt_**2) - (1 - 2 * b) / (2 * b) * self.a
         w_mid = (1 - p.alpha_f) * w + p.alpha_f * self.w_old
         a_mid = (1 - p.alpha_m) * a_new + p.alpha_m * self.a
-        gdim = problem.gdim
-        du, dphi = ufl.TestFunctions(V)
-        u_m, phi_m = _split(w_mid, gdim)
-        au, aphi = _split(a_mid, gdim)
-        F = (inertia_work(au, aphi, du, dphi, c) + internal_work(u_m, phi_m, du, dphi, c)) * problem.dx
-        L = problem.external_work(du, dphi)
+        dw = ufl.TestFunctions(V)
+        F = (model.inertia_work(problem.split(a_mid), dw)
+             + model.internal_work(problem.split(w_mid), dw, state)) * problem.dx
+        L = problem.external_work(dw)
         F = F - L if L != 0 else F
         options = {"snes_lag_jacobian": -2, "snes_lag_jacobian_persists": True}
         options.update(problem.petsc_options)
@@ -96,10 +89,8 @@ class GeneralizedAlpha:
         self._snes = problem.snes_problem(F, prefix or problem.prefix + "dyn_")
         problem.petsc_options = saved
         self._affine = _AffineStep.build(self, F, L)
-        vu, vphi = ufl.split(self.v)
-        u, phi = ufl.split(w)
-        self._kinetic = fem.form(kinetic_energy_density(vu, vphi, c) * problem.dx)
-        self._elastic = fem.form(strain_energy_density(strain(u, phi), curvature(phi), c) * problem.dx)
+        self._kinetic = fem.form(model.kinetic_energy(problem.split(self.v)) * problem.dx)
+        self._elastic = fem.form(model.stored_energy(problem.split(w), state) * problem.dx)
         self._weighted: dict = {}
 
     def initialize_acceleration(self) -> None:
@@ -107,14 +98,12 @@ class GeneralizedAlpha:
         dofs, i.e. boundary values constant at the start)."""
         from dolfinx.fem.petsc import LinearProblem
 
-        problem, c = self.problem, self.problem.constants
+        problem, model = self.problem, self.problem.model
         V = problem.V
-        a_u, a_phi = ufl.TrialFunctions(V)
-        du, dphi = ufl.TestFunctions(V)
-        u, phi = ufl.split(problem.w)
-        lhs = inertia_work(a_u, a_phi, du, dphi, c) * problem.dx
-        rhs = -internal_work(u, phi, du, dphi, c) * problem.dx
-        ext = problem.external_work(du, dphi)
+        dw = ufl.TestFunctions(V)
+        lhs = model.inertia_work(ufl.TrialFunctions(V), dw) * problem.dx
+        rhs = -model.internal_work(problem.split(problem.w), dw, problem.state.committed) * problem.dx
+        ext = problem.external_work(dw)
         if ext != 0:
             rhs = rhs + ext
         zero = fem.Function(V)
@@ -149,6 +138,7 @@ class GeneralizedAlpha:
             return self.problem.checked(self._snes, what)
         except Exception:
             self.problem.w.x.array[:] = self.w_old.x.array
+            self.problem.state.restore()
             raise
 
     def finish(self) -> None:
@@ -159,6 +149,7 @@ class GeneralizedAlpha:
         v[:] = v + dt * ((1 - p.gamma) * a + p.gamma * a_new)
         a[:] = a_new
         self.t += dt
+        self.problem.state.commit()
 
     def step(self) -> int:
         """Advance one step; return SNES iterations (raises with the PETSc reason on failure)."""
@@ -176,12 +167,10 @@ class GeneralizedAlpha:
         else:
             key = id(weight)
             if key not in self._weighted:
-                c, dx = self.problem.constants, self.problem.dx
-                vu, vphi = ufl.split(self.v)
-                u, phi = ufl.split(self.problem.w)
+                p = self.problem
                 self._weighted[key] = (
-                    fem.form(weight * kinetic_energy_density(vu, vphi, c) * dx),
-                    fem.form(weight * strain_energy_density(strain(u, phi), curvature(phi), c) * dx))
+                    fem.form(weight * p.model.kinetic_energy(p.split(self.v)) * p.dx),
+                    fem.form(weight * p.model.stored_energy(p.split(p.w), p.state.committed) * p.dx))
             forms = self._weighted[key]
         return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in forms)
 
@@ -226,12 +215,11 @@ class _AffineStep:
 
     def __init__(self, stepper: GeneralizedAlpha, L, ksp):
         problem, p = stepper.problem, stepper.params
-        c, V = problem.constants, problem.V
+        model, V = problem.model, problem.V
         self.stepper, self.problem, self.ksp = stepper, problem, ksp
-        a_u, a_phi = ufl.TrialFunctions(V)
-        du, dphi = ufl.TestFunctions(V)
-        m_ufl = inertia_work(a_u, a_phi, du, dphi, c) * problem.dx
-        k_ufl = internal_work(a_u, a_phi, du, dphi, c) * problem.dx
+        trial, dw = ufl.TrialFunctions(V), ufl.TestFunctions(V)
+        m_ufl = model.inertia_work(trial, dw) * problem.dx
+        k_ufl = model.internal_work(trial, dw, problem.state.committed) * problem.dx
         self._m, self._k = fem.form(m_ufl), fem.form(k_ufl)
         self._matrix_constants = list({id(x): x for x in (*m_ufl.constants(), *k_ufl.constants(),
                                                            stepper.dt)}.values())
@@ -256,6 +244,8 @@ class _AffineStep:
 
         problem = stepper.problem
         w = problem.w
+        if not problem.model.linear or problem.state:
+            return None
         J = expand_derivatives(ufl.derivative(F, w, ufl.TrialFunction(problem.V)))
         if len(J.coefficients()) > 0:       # J depends on w (or on other functions)
             return None

@@ -1,8 +1,5 @@
-"""Continuum output: VTX (ADIOS2 .bp) time series for ParaView and pyvista PNG renders.
-
-Fields written: displacement u, micro-rotation phi (both at the degree of u), and the
-unsymmetric force stress sigma and couple stress m (discontinuous Lagrange).
-"""
+"""Continuum output: VTX (ADIOS2 .bp) time series for ParaView and pyvista PNG renders,
+over any model's fields, stresses and history variables."""
 
 from __future__ import annotations
 
@@ -10,20 +7,29 @@ from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
 
+import basix.ufl
 import numpy as np
 import ufl
 from dolfinx import fem, plot
 from dolfinx.io import VTXWriter
 
-from granfe.problem import MicropolarProblem
+from granfe.problem import ContinuumProblem
 
 __all__ = ["ContinuumWriter", "continuum_grid", "scalar_fields", "render_png"]
 
 
 class ContinuumWriter:
-    """VTX series ``<name>_fields.bp`` (u, phi) and ``<name>_stress.bp`` (sigma, m)."""
+    """VTX series of a problem's fields and stresses.
 
-    def __init__(self, problem: MicropolarProblem, out_dir: str | Path, name: str = "continuum"):
+    ``<name>_fields.bp``: every field of the model at the degree of its first field
+    (micropolar: u, phi); ``<name>_stress.bp``: its stress measures (micropolar: sigma,
+    couple_stress), discontinuous Lagrange one degree lower (at least 1), or cell averages
+    over the quadrature points for a model with history; ``<name>_state.bp``: the history
+    variables as cell averages, for a model that has them. Functions are attributes by name
+    (``writer.u``, ``writer.sigma``).
+    """
+
+    def __init__(self, problem: ContinuumProblem, out_dir: str | Path, name: str = "continuum"):
         domain, gdim = problem.domain, problem.gdim
         k = problem.degree[0]
         self.problem = problem
@@ -31,29 +37,54 @@ class ContinuumWriter:
         if domain.comm.rank == 0:
             out_dir.mkdir(parents=True, exist_ok=True)
         domain.comm.barrier()
-        self.u = fem.Function(fem.functionspace(domain, ("Lagrange", k, (gdim,))), name="u")
-        phi_shape = () if gdim == 2 else (3,)
-        self.phi = fem.Function(fem.functionspace(domain, ("Lagrange", k, phi_shape)), name="phi")
-        kd = max(k - 1, 1)
-        S = fem.functionspace(domain, ("Discontinuous Lagrange", kd, (gdim, gdim)))
-        m_shape = (gdim,) if gdim == 2 else (3, 3)
-        M = fem.functionspace(domain, ("Discontinuous Lagrange", kd, m_shape))
-        self.sigma = fem.Function(S, name="sigma")
-        self.m = fem.Function(M, name="couple_stress")
-        sigma, m = problem.stress_expressions()
-        self._sigma_expr = fem.Expression(sigma, S.element.interpolation_points)
-        self._m_expr = fem.Expression(m, M.element.interpolation_points)
-        self.paths = (out_dir / f"{name}_fields.bp", out_dir / f"{name}_stress.bp")
-        self._writers = [VTXWriter(domain.comm, self.paths[0], [self.u, self.phi], engine="BP4"),
-                         VTXWriter(domain.comm, self.paths[1], [self.sigma, self.m], engine="BP4")]
+        self.fields = {}
+        for f in problem.fields:
+            self.fields[f.name] = fem.Function(fem.functionspace(domain, ("Lagrange", k, f.shape)),
+                                               name=f.name)
+        stresses = problem.stresses()
+        self.stresses, self._stress_exprs = {}, {}
+        averaged = bool(problem.state)
+        for sname, expr in stresses.items():
+            shape = ufl.shape(expr)
+            if averaged:
+                S = fem.functionspace(domain, ("Discontinuous Lagrange", 0, shape))
+                Q = fem.functionspace(domain, basix.ufl.quadrature_element(
+                    domain.basix_cell(), value_shape=shape, degree=problem.state.degree))
+                self._stress_exprs[sname] = (fem.Expression(expr, Q.element.interpolation_points),
+                                             fem.Function(Q))
+            else:
+                S = fem.functionspace(domain, ("Discontinuous Lagrange", max(k - 1, 1), shape))
+                self._stress_exprs[sname] = (fem.Expression(expr, S.element.interpolation_points), None)
+            self.stresses[sname] = fem.Function(S, name=sname)
+        self.state = {}
+        for sname, q in problem.state.committed.items():
+            shape = q.function_space.value_shape
+            S = fem.functionspace(domain, ("Discontinuous Lagrange", 0, shape))
+            self.state[sname] = fem.Function(S, name=sname)
+        for attr, f in {**self.fields, **self.stresses}.items():
+            setattr(self, attr, f)
+        self.paths = [out_dir / f"{name}_fields.bp", out_dir / f"{name}_stress.bp"]
+        groups = [list(self.fields.values()), list(self.stresses.values())]
+        if self.state:
+            self.paths.append(out_dir / f"{name}_state.bp")
+            groups.append(list(self.state.values()))
+        self.paths = tuple(self.paths)
+        self._writers = [VTXWriter(domain.comm, path, group, engine="BP4")
+                         for path, group in zip(self.paths, groups, strict=True)]
 
     def update(self) -> None:
         """Interpolate the problem's current state into the output functions."""
         w = self.problem.w
-        self.u.interpolate(w.sub(0))
-        self.phi.interpolate(w.sub(1))
-        self.sigma.interpolate(self._sigma_expr)
-        self.m.interpolate(self._m_expr)
+        for i, f in enumerate(self.fields.values()):
+            f.interpolate(w.sub(i))
+        for sname, (expr, quad) in self._stress_exprs.items():
+            if quad is None:
+                self.stresses[sname].interpolate(expr)
+            else:
+                quad.interpolate(expr)
+                _cell_average(quad, self.stresses[sname])
+        for sname, f in self.state.items():
+            _cell_average(self.problem.state.committed[sname], f)
 
     def write(self, t: float) -> None:
         self.update()
@@ -71,30 +102,21 @@ class ContinuumWriter:
         self.close()
 
 
-def scalar_fields(problem: MicropolarProblem) -> dict[str, ufl.core.expr.Expr]:
-    """Named scalar UFL fields for colouring: components, von Mises, magnitudes."""
-    u, phi = ufl.split(problem.w)
-    sigma, m = problem.stress_expressions()
-    gdim = problem.gdim
-    s = ufl.sym(sigma)
-    dev = s - ufl.tr(s) / 3 * ufl.Identity(gdim) if gdim == 3 else s - ufl.tr(s) / 2 * ufl.Identity(2)
-    fields = {
-        "u_magnitude": ufl.sqrt(ufl.inner(u, u)),
-        "von_mises": ufl.sqrt(1.5 * ufl.inner(dev, dev)),
-        "couple_stress_magnitude": ufl.sqrt(ufl.inner(m, m)),
-        "phi_z": phi if gdim == 2 else phi[2],
-    }
-    axes = "xyz"
-    for i in range(gdim):
-        fields[f"u_{axes[i]}"] = u[i]
-        for j in range(gdim):
-            fields[f"sigma_{axes[i]}{axes[j]}"] = sigma[i, j]
-    if gdim == 2:
-        fields["m_zx"], fields["m_zy"] = m[0], m[1]
-    return fields
+def _cell_average(quad: fem.Function, dg0: fem.Function) -> None:
+    """Mean over each cell's quadrature points of a quadrature function, into DG0."""
+    Q, S = quad.function_space, dg0.function_space
+    bs = Q.dofmap.index_map_bs
+    values = quad.x.array.reshape(-1, bs)[Q.dofmap.list].mean(axis=1)
+    dg0.x.array.reshape(-1, bs)[S.dofmap.list[:, 0]] = values
+    dg0.x.scatter_forward()
 
 
-def continuum_grid(problem: MicropolarProblem, field: str = "von_mises"):
+def scalar_fields(problem: ContinuumProblem) -> dict[str, ufl.core.expr.Expr]:
+    """Named scalar UFL fields for colouring (the model's: components, von Mises, ...)."""
+    return problem.model.plot_fields(problem.split(problem.w), problem.state.committed)
+
+
+def continuum_grid(problem: ContinuumProblem, field: str = "von_mises"):
     """The body as a pyvista grid with point data ``u`` (3 components) and ``field``.
 
     Collective: every rank sends its part to rank 0; returns the grid on rank 0, None elsewhere.
@@ -126,7 +148,7 @@ def continuum_grid(problem: MicropolarProblem, field: str = "von_mises"):
     return grids[0] if len(grids) == 1 else pyvista.merge(grids)
 
 
-def render_png(problem: MicropolarProblem, path: str | Path, field: str = "von_mises",
+def render_png(problem: ContinuumProblem, path: str | Path, field: str = "von_mises",
                warp: float | None = None, title: str | None = None, clim=None,
                box: tuple[float, ...] | None = None, overlay=None) -> Path | None:
     """Render the (optionally warped) body coloured by a named scalar field to a PNG.

@@ -37,11 +37,14 @@ class MicropolarMaterial:
         rho: mass density [kg/m^3].
         j: micro-inertia per unit mass [m^2] (rotary inertia density is ``rho * j``).
 
-    Construction checks the conditions for a positive-definite strain energy of an
-    isotropic micropolar solid (Eringen 1999, eq. 5.1.9): ``mu > 0``, ``kappa >= 0``,
-    ``3 lam + 2 mu + kappa > 0``, ``3 alpha + beta + gamma > 0``, ``gamma + beta > 0``,
-    ``gamma - beta > 0``; ``kappa = 0`` is allowed (the classical limit, rotations
-    decoupled). In plane strain only ``gamma`` enters the curvature energy.
+    Construction checks Eringen's conditions for a non-negative strain energy of an
+    isotropic micropolar solid (Eringen 1999, eq. 5.1.9): ``3 lam + 2 mu + kappa >= 0``,
+    ``2 mu + kappa >= 0``, ``kappa >= 0``, ``3 alpha + beta + gamma >= 0``,
+    ``gamma + beta >= 0``, ``gamma - beta >= 0``, with the first two and ``gamma + beta``
+    strict (else a deformation costs no energy and no solve is possible). Eringen's ``mu``
+    itself may be negative: with Forest's constants (``mu_c > mu_classical``) it is. The
+    classical shear modulus is ``mu + kappa / 2``. ``kappa = 0`` is the classical limit
+    (rotations decoupled). In plane strain only ``gamma`` enters the curvature energy.
     """
 
     lam: float
@@ -60,12 +63,12 @@ class MicropolarMaterial:
                 raise ValueError(f"MicropolarMaterial.{f.name} must be a finite number, got {value!r}")
         # (parameter blamed, quantity, rule, strict)
         checks = [
-            ("mu", self.mu, "mu > 0", True),
+            ("mu", 2 * self.mu + self.kappa, "2 mu + kappa > 0", True),
             ("kappa", self.kappa, "kappa >= 0", False),
             ("lam", 3 * self.lam + 2 * self.mu + self.kappa, "3 lam + 2 mu + kappa > 0", True),
             ("gamma", self.gamma + self.beta, "gamma + beta > 0", True),
-            ("beta", self.gamma - self.beta, "gamma - beta > 0", True),
-            ("alpha", 3 * self.alpha + self.beta + self.gamma, "3 alpha + beta + gamma > 0", True),
+            ("beta", self.gamma - self.beta, "gamma - beta >= 0", False),
+            ("alpha", 3 * self.alpha + self.beta + self.gamma, "3 alpha + beta + gamma >= 0", False),
             ("rho", self.rho, "rho > 0", True),
             ("j", self.j, "j > 0", True),
         ]
@@ -73,7 +76,7 @@ class MicropolarMaterial:
             if (value <= 0.0) if strict else (value < 0.0):
                 raise ValueError(
                     f"MicropolarMaterial.{name} = {getattr(self, name)!r} violates {rule} "
-                    f"(positive-definite micropolar energy)"
+                    f"(Eringen's conditions for a non-negative micropolar energy)"
                 )
 
     @classmethod

@@ -1,4 +1,4 @@
-"""Static micropolar boundary-value problem: boundary conditions, loads, SNES solve.
+"""Static boundary-value problem of any continuum model: conditions, loads, SNES solve.
 
 Typical use (2D plane strain, mesh with named physical groups from gmsh)::
 
@@ -6,7 +6,9 @@ Typical use (2D plane strain, mesh with named physical groups from gmsh)::
     problem.fix("left", "u_x"); problem.fix("left", "phi")
     problem.traction("right", (1e6, 0.0))
     problem.solve()
+    problem.reaction("left", "u_x")          # the support's reaction force
 
+or, for any registered model, ``ContinuumProblem(mesh, StrainMemory(material), ...)``.
 Boundaries are named physical groups, integer tags, or a locator ``x -> bool mask``.
 """
 
@@ -21,14 +23,17 @@ import numpy as np
 import ufl
 from dolfinx import default_scalar_type, fem, mesh as _mesh
 from mpi4py import MPI
+from petsc4py import PETSc
 
-from granfe.forms import MaterialConstants, internal_work, stresses
 from granfe.materials import MicropolarMaterial
+from granfe.models.base import ContinuumModel
+from granfe.models.micropolar import Micropolar
 from granfe.solvers import (ITERATIVE, check_converged, check_ksp_converged, make_snes_problem,
-                            rigid_body_modes)
-from granfe.spaces import COMPONENTS, micropolar_space, sub_space
+                            rigid_modes_nullspace)
+from granfe.spaces import components, model_space, split, sub_space
+from granfe.state import QuadratureState
 
-__all__ = ["MicropolarProblem", "MissingBoundary"]
+__all__ = ["ContinuumProblem", "MicropolarProblem", "MissingBoundary"]
 
 Where = str | int | Callable[[np.ndarray], np.ndarray]
 
@@ -37,42 +42,54 @@ class MissingBoundary(ValueError):
     """A boundary named in a condition is not in the mesh's facet tags."""
 
 
-class MicropolarProblem:
-    """Quasi-static linear micropolar elasticity on a 2D (plane strain) or 3D mesh.
+class ContinuumProblem:
+    """Quasi-static boundary-value problem of a continuum model on a 2D or 3D mesh.
 
     Args:
         domain: the mesh (2D in the plane or 3D).
-        material: the micropolar constants.
+        model: a :class:`~granfe.models.base.ContinuumModel` holding its material.
         facet_tags: boundary tags (e.g. from ``dolfinx.io.gmsh.model_to_mesh``).
         tag_names: physical-group names -> facet tag values.
-        degree: Lagrange degrees of (u, phi).
-        petsc_options: overrides of :data:`granfe.solvers.DIRECT`; ``solver="iterative"``
-            starts from :data:`granfe.solvers.ITERATIVE` instead and attaches the
-            rigid-body near-nullspace.
+        degree: Lagrange degree of each field (default: the model's).
+        solver: ``"direct"`` (MUMPS) or ``"iterative"`` (:data:`granfe.solvers.ITERATIVE`,
+            with the model's rigid modes as near-nullspace).
+        petsc_options: overrides of the solver's PETSc options.
         prefix: unique PETSc options prefix.
         checkpoint_dir: where the last converged state is written if a solve fails.
+        quadrature_degree: of the history variables (models with state only; default
+            twice the highest field degree).
     """
 
-    def __init__(self, domain: _mesh.Mesh, material: MicropolarMaterial, *,
+    def __init__(self, domain: _mesh.Mesh, model: ContinuumModel, *,
                  facet_tags: _mesh.MeshTags | None = None, tag_names: dict[str, int] | None = None,
-                 degree: tuple[int, int] = (2, 1), solver: str = "direct",
+                 degree: tuple[int, ...] | None = None, solver: str = "direct",
                  petsc_options: dict | None = None, prefix: str = "granfe_",
-                 checkpoint_dir: str | Path | None = None):
-        if not isinstance(material, MicropolarMaterial):
-            raise TypeError(f"material must be a MicropolarMaterial, got {type(material).__name__}")
+                 checkpoint_dir: str | Path | None = None, quadrature_degree: int | None = None):
+        if not isinstance(model, ContinuumModel):
+            raise TypeError(f"model must be a ContinuumModel, got {type(model).__name__}")
         if solver not in ("direct", "iterative"):
             raise ValueError(f"solver must be 'direct' or 'iterative', got {solver!r}")
         self.domain = domain
         self.gdim = domain.geometry.dim
-        self.material = material
-        self.constants = MaterialConstants.from_material(domain, material)
-        self.V = micropolar_space(domain, *degree)
-        self.degree = degree
+        model.bind(domain)
+        self.model = model
+        self.fields = model.fields(self.gdim)
+        self.components = components(self.fields)
+        self.degree = tuple(f.degree for f in self.fields) if degree is None else tuple(degree)
+        self.V = model_space(domain, self.fields, self.degree)
         self.w = fem.Function(self.V, name="w")
+        qdeg = 2 * max(self.degree) if quadrature_degree is None else quadrature_degree
+        self.state = QuadratureState(domain, model.state_variables(self.gdim), qdeg)
+        if self.state:
+            self.state.bind(model.state_update(split(self.w, self.fields), self.state.committed))
+            self.dx = self.state.dx
+        else:
+            self.dx = ufl.Measure("dx", domain=domain)
         self.facet_tags = facet_tags
         self.tag_names = dict(tag_names or {})
         self.solver_kind = solver
         self.petsc_options = dict(ITERATIVE if solver == "iterative" else {})
+        self.petsc_options.update(model.solver_options)
         self.petsc_options.update(petsc_options or {})
         self.prefix = prefix
         self.checkpoint_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -80,8 +97,29 @@ class MicropolarProblem:
         self._surface: list[tuple[np.ndarray, str, object]] = []
         self._volume: list[tuple[str, object]] = []
         self._snes = None
-        self._last_good = self.w.x.array.copy()
-        self.dx = ufl.Measure("dx", domain=domain)
+        self.last_good = self.w.x.array.copy()
+
+    @property
+    def _last_good(self):   # the former name, until the penetration checkpoint uses state_dict
+        return self.last_good
+
+    @property
+    def material(self):
+        return self.model.material
+
+    @property
+    def constants(self):
+        return self.model.constants
+
+    @property
+    def snes(self):
+        """The PETSc SNES of the last static solve (None before the first), e.g. to read its
+        iteration counts or KSP."""
+        return None if self._snes is None else self._snes.solver
+
+    def invalidate(self) -> None:
+        """Forget the compiled solver (after loads or conditions changed)."""
+        self._snes = None
 
     # ---- where ------------------------------------------------------------------------
     def facets(self, where: Where) -> np.ndarray:
@@ -100,12 +138,12 @@ class MicropolarProblem:
             tag = int(where)
         if self.facet_tags is None:
             raise MissingBoundary(f"boundary tag {where!r} given but the problem has no facet_tags")
-        present = self.domain.comm.allreduce(int(np.any(self.facet_tags.values == tag)), MPI.MAX)
+        comm = self.domain.comm
+        present = comm.allreduce(int(np.any(self.facet_tags.values == tag)), MPI.MAX)
         if not present:
-            raise MissingBoundary(
-                f"boundary {where!r} (tag {tag}) has no facets in the mesh's facet tags; "
-                f"tags present: {sorted(set(self.domain.comm.allreduce(list(np.unique(self.facet_tags.values)), MPI.SUM)))}"
-            )
+            tags = sorted(set(comm.allreduce(list(np.unique(self.facet_tags.values)), MPI.SUM)))
+            raise MissingBoundary(f"boundary {where!r} (tag {tag}) has no facets in the mesh's "
+                                  f"facet tags; tags present: {tags}")
         return self.facet_tags.find(tag)
 
     # ---- conditions -------------------------------------------------------------------
@@ -119,122 +157,259 @@ class MicropolarProblem:
             raise ValueError(f"value {value!r} is not finite")
         return fem.Constant(self.domain, arr)
 
-    def _shape(self, field: str):
-        if field == "u":
-            return (self.gdim,)
-        return () if self.gdim == 2 else (3,)
+    def _field(self, name: str) -> int:
+        for i, f in enumerate(self.fields):
+            if f.name == name:
+                return i
+        raise ValueError(f"the {self.model.name} model has no field {name!r}; "
+                         f"its fields: {[f.name for f in self.fields]}")
+
+    def _component(self, component: str) -> tuple[int, int | None]:
+        if component not in self.components:
+            raise ValueError(f"unknown component {component!r} for the {self.gdim}D "
+                             f"{self.model.name} model; choose one of {sorted(self.components)}")
+        return self.components[component]
 
     def fix(self, where: Where, component: str = "u", value=0.0):
         """Dirichlet condition on a component (``u``, ``u_x``, ``phi``, ``phi_z``, ...).
 
-        ``value`` is a number (or a vector for ``u``/``phi`` in 3D), a ``fem.Constant``
+        ``value`` is a number (or a vector for a vector field), a ``fem.Constant``
         (update ``.value`` for load stepping), or a callable ``x -> values`` interpolated
         into the component's space. Returns the constant or function holding the value
-        (a list of scalar constants for a constant vector on ``u`` or 3D ``phi``).
+        (a list of scalar constants for a constant value on a whole vector field).
         """
-        Vi = sub_space(self.V, component)
-        fdim = self.domain.topology.dim - 1
-        field, sub = COMPONENTS[self.gdim][component]
-        shape = () if sub is not None else self._shape("u" if field == 0 else "phi")
+        field, sub = self._component(component)
+        f = self.fields[field]
+        shape = () if sub is not None else f.shape
         if shape and not callable(value):
             # dolfinx takes Constant values only per scalar component of a mixed space
-            names = [n for n, (f, s) in COMPONENTS[self.gdim].items() if f == field and s is not None]
             values = np.broadcast_to(np.asarray(value, dtype=float), shape)
-            return [self.fix(where, n, float(v)) for n, v in zip(names, values)]
-        facets = self.facets(where)
-        if callable(value) and not isinstance(value, fem.Constant):
+            return [self.fix(where, n, float(v)) for n, v in zip(f.components, values, strict=True)]
+        return self._dirichlet(component, value, self.facets(where), topological=True)
+
+    def fix_point(self, point, component: str = "u", value=0.0, tol: float | None = None):
+        """Dirichlet condition at the dofs located at ``point`` (e.g. to hold a body under
+        pure traction against rigid motion). Raises if no rank has a dof within ``tol``
+        (default 1e-8 of the mesh size) of the point."""
+        x0 = np.zeros(3)
+        x0[:len(point)] = point
+        field, sub = self._component(component)
+        f = self.fields[field]
+        if f.shape and sub is None and not callable(value):
+            values = np.broadcast_to(np.asarray(value, dtype=float), f.shape)
+            return [self.fix_point(point, n, float(v), tol)
+                    for n, v in zip(f.components, values, strict=True)]
+        if tol is None:
+            x = self.domain.geometry.x
+            size = self.domain.comm.allreduce(float(np.ptp(x, axis=0).max()) if len(x) else 0.0,
+                                              MPI.MAX)
+            tol = 1e-8 * size
+
+        def at(x):
+            return np.linalg.norm(x - x0[:, None], axis=0) <= tol
+
+        return self._dirichlet(component, value, at, topological=False)
+
+    def _dirichlet(self, component, value, where, topological: bool):
+        Vi = sub_space(self.V, component, self.fields)
+        fdim = self.domain.topology.dim - 1
+        field, sub = self._component(component)
+        shape = () if sub is not None else self.fields[field].shape
+        needs_collapse = callable(value) and not isinstance(value, fem.Constant)
+        if needs_collapse or not topological:
             Vc, _ = Vi.collapse()
-            g = fem.Function(Vc)
-            g.interpolate(value)
-            dofs = fem.locate_dofs_topological((Vi, Vc), fdim, facets)
-            self.bcs.append(fem.dirichletbc(g, dofs, Vi))
-            holder = g
+        if topological:
+            dofs = fem.locate_dofs_topological((Vi, Vc) if needs_collapse else Vi, fdim, where)
         else:
-            holder = self._constant(value, shape)
-            dofs = fem.locate_dofs_topological(Vi, fdim, facets)
+            dofs = fem.locate_dofs_geometrical((Vi, Vc), where)
+            found = self.domain.comm.allreduce(len(dofs[0]), MPI.SUM)
+            if not found:
+                raise ValueError(f"no {component} dof lies at the point given to fix_point")
+        if needs_collapse:
+            holder = fem.Function(Vc)
+            holder.interpolate(value)
             self.bcs.append(fem.dirichletbc(holder, dofs, Vi))
+        elif topological:
+            holder = self._constant(value, shape)
+            self.bcs.append(fem.dirichletbc(holder, dofs, Vi))
+        else:
+            holder = fem.Function(Vc)
+            holder.x.array[:] = float(value) if not isinstance(value, fem.Constant) else value.value
+            self.bcs.append(fem.dirichletbc(holder, dofs, Vi))
+        self._snes = None
+        return holder
+
+    def surface_load(self, where: Where, field: str, value):
+        """A load per unit area on a boundary, work-conjugate to ``field`` (a traction for
+        ``u``, a surface couple for ``phi``). Loads on the same or overlapping facets add."""
+        holder = self._constant(value, self.fields[self._field(field)].shape)
+        self._surface.append((self.facets(where), field, holder))
+        self._snes = None
+        return holder
+
+    def body_load(self, field: str, value):
+        """A load per unit volume work-conjugate to ``field``."""
+        holder = self._constant(value, self.fields[self._field(field)].shape)
+        self._volume.append((field, holder))
         self._snes = None
         return holder
 
     def traction(self, where: Where, value):
         """Surface traction t [Pa] (vector, or a UFL expression) on a boundary."""
-        holder = self._constant(value, (self.gdim,))
-        self._surface.append((self.facets(where), "u", holder))
-        self._snes = None
-        return holder
+        return self.surface_load(where, "u", value)
 
     def surface_couple(self, where: Where, value):
         """Surface couple [N/m] (scalar phi_z-couple in 2D, vector in 3D) on a boundary."""
-        holder = self._constant(value, self._shape("phi"))
-        self._surface.append((self.facets(where), "phi", holder))
-        self._snes = None
-        return holder
+        return self.surface_load(where, "phi", value)
 
     def body_force(self, value):
         """Body force per unit volume [N/m^3] (vector or UFL expression)."""
-        holder = self._constant(value, (self.gdim,))
-        self._volume.append(("u", holder))
-        self._snes = None
-        return holder
+        return self.body_load("u", value)
 
     def body_couple(self, value):
         """Body couple per unit volume [N/m^2]."""
-        holder = self._constant(value, self._shape("phi"))
-        self._volume.append(("phi", holder))
-        self._snes = None
-        return holder
+        return self.body_load("phi", value)
 
     # ---- forms ------------------------------------------------------------------------
-    def _ds(self):
+    def _surface_measure(self):
+        """ds over the loaded facets, and per load the tags it integrates over. A facet's
+        tag numbers the set of loads acting on it, so loads on overlapping facets add."""
         fdim = self.domain.topology.dim - 1
-        pieces = [f for f, _, _ in self._surface]
-        if not pieces:
-            return ufl.Measure("ds", domain=self.domain)
-        indices = np.concatenate(pieces).astype(np.int32)
-        values = np.concatenate([np.full(len(f), i + 1, dtype=np.int32) for i, f in enumerate(pieces)])
-        if len(np.unique(indices)) != len(indices):
-            raise ValueError("two surface loads act on the same facets; combine them into one")
-        order = np.argsort(indices)
-        tags = _mesh.meshtags(self.domain, fdim, indices[order], values[order])
-        return ufl.Measure("ds", domain=self.domain, subdomain_data=tags)
+        if not self._surface:
+            return ufl.Measure("ds", domain=self.domain), []
+        acting: dict[int, set] = {}
+        for i, (facets, _, _) in enumerate(self._surface):
+            for f in facets:
+                acting.setdefault(int(f), set()).add(i)
+        signatures = self.domain.comm.allgather(sorted({tuple(sorted(s)) for s in acting.values()}))
+        tag_of = {sig: k + 1 for k, sig in enumerate(sorted({s for part in signatures for s in part}))}
+        indices = np.array(sorted(acting), dtype=np.int32)
+        values = np.array([tag_of[tuple(sorted(acting[f]))] for f in indices], dtype=np.int32)
+        tags = _mesh.meshtags(self.domain, fdim, indices, values)
+        ds = ufl.Measure("ds", domain=self.domain, subdomain_data=tags)
+        per_load = [tuple(t for sig, t in tag_of.items() if i in sig) for i in range(len(self._surface))]
+        return ds, per_load
 
-    def external_work(self, du, dphi):
-        """External virtual work of the surface and volume loads (UFL form or 0)."""
-        ds = self._ds()
+    def external_work(self, *dw):
+        """External virtual work of the surface and volume loads (UFL form or 0) for test
+        functions ``dw``, one per field (as arguments, or one tuple)."""
+        if len(dw) == 1 and isinstance(dw[0], tuple):
+            dw = dw[0]
+        ds, per_load = self._surface_measure()
+        names = [f.name for f in self.fields]
         L = 0
-        for i, (_, field, value) in enumerate(self._surface):
-            L += ufl.inner(value, du if field == "u" else dphi) * ds(i + 1)
+        for (_, field, value), tags in zip(self._surface, per_load, strict=True):
+            if tags:
+                L += ufl.inner(value, dw[names.index(field)]) * ds(tags)
         for field, value in self._volume:
-            L += ufl.inner(value, du if field == "u" else dphi) * self.dx
+            L += ufl.inner(value, dw[names.index(field)]) * self.dx
         return L
+
+    def split(self, expr) -> tuple:
+        """One UFL expression per field (see :func:`granfe.spaces.split`)."""
+        return split(expr, self.fields)
 
     def residual(self, w: fem.Function | None = None):
         """Static residual form ``internal - external`` for test functions of V."""
         w = self.w if w is None else w
-        u, phi = ufl.split(w)
-        du, dphi = ufl.TestFunctions(self.V)
-        F = internal_work(u, phi, du, dphi, self.constants) * self.dx
-        L = self.external_work(du, dphi)
+        dw = ufl.TestFunctions(self.V)
+        F = self.model.internal_work(self.split(w), dw, self.state.committed) * self.dx
+        L = self.external_work(dw)
         return F - L if L != 0 else F
 
-    def stress_expressions(self, w: fem.Function | None = None):
-        """(sigma, m) of ``w`` as UFL expressions."""
-        u, phi = ufl.split(self.w if w is None else w)
-        return stresses(u, phi, self.constants)
+    def stresses(self, w: fem.Function | None = None) -> dict:
+        """The model's named stress measures of ``w`` (UFL)."""
+        return self.model.stresses(self.split(self.w if w is None else w), self.state.committed)
+
+    def stress_expressions(self, w: fem.Function | None = None) -> tuple:
+        """The stress measures as a tuple (micropolar: ``(sigma, m)``; index convention in
+        :mod:`granfe.models.micropolar`)."""
+        return tuple(self.stresses(w).values())
+
+    # ---- reactions --------------------------------------------------------------------
+    def _boundary_weights(self, where: Where, modes) -> list[np.ndarray]:
+        """Per mode: a vector of V equal to the mode at the dofs on the boundary, else 0."""
+        fdim = self.domain.topology.dim - 1
+        facets = self.facets(where)
+        on = np.zeros(len(self.w.x.array), dtype=bool)
+        for i in range(len(self.fields)):
+            on[fem.locate_dofs_topological(self.V.sub(i), fdim, facets)] = True
+        out = []
+        for mode in modes:
+            g = fem.Function(self.V)
+            for i, fn in enumerate(mode):
+                if fn is not None:
+                    g.sub(i).interpolate(fn)
+            out.append(np.where(on, g.x.array, 0.0))
+        return out
+
+    def _residual_vector(self) -> np.ndarray:
+        from dolfinx.fem.petsc import assemble_vector
+
+        b = assemble_vector(fem.form(self.residual()))
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        n = self.V.dofmap.index_map.size_local * self.V.dofmap.index_map_bs
+        r = b.array_r[:n].copy()
+        b.destroy()
+        return r
+
+    def reaction(self, where: Where, component: str = "u"):
+        """The reaction on a boundary, the force its supports exert on the body: the internal
+        force minus the applied loads at its dofs, conjugate to ``component`` (``"u"``: the force vector [N, or N/m in
+        2D]; ``"u_x"``: one component; ``"phi"``: the reaction couple). Collective."""
+        field, sub = self._component(component)
+        f = self.fields[field]
+        n = int(np.prod(f.shape)) if f.shape else 1
+        picks = [sub] if sub is not None else list(range(n))
+        modes = []
+        for k in picks:
+            mode = [None] * len(self.fields)
+            if f.shape:
+                mode[field] = (lambda x, k=k: np.vstack([np.full(x.shape[1], float(i == k))
+                                                         for i in range(n)]))
+            else:
+                mode[field] = lambda x: np.ones(x.shape[1])
+            modes.append(mode)
+        r = self._residual_vector()
+        weights = self._boundary_weights(where, modes)
+        comm = self.domain.comm
+        values = np.array([comm.allreduce(float(r @ g[:len(r)]), MPI.SUM) for g in weights])
+        return float(values[0]) if (sub is not None or not f.shape) else values
+
+    def reaction_moment(self, where: Where, about=(0.0, 0.0, 0.0)):
+        """The moment of the reactions (forces and couples) on a boundary about a point:
+        a scalar (z) in 2D, a 3-vector in 3D. Uses the model's rigid rotation modes."""
+        modes = self.model.rigid_modes(self.gdim)[self.gdim:]
+        r = self._residual_vector()
+        comm = self.domain.comm
+        m0 = np.array([comm.allreduce(float(r @ g[:len(r)]), MPI.SUM)
+                       for g in self._boundary_weights(where, modes)])
+        force = np.zeros(3)
+        force[:self.gdim] = self.reaction(where, "u")
+        x0 = np.zeros(3)
+        x0[:len(about)] = about
+        shift = np.cross(x0, force)
+        return float(m0[0] - shift[2]) if self.gdim == 2 else m0 - shift
 
     # ---- solve ------------------------------------------------------------------------
     def snes_problem(self, F, prefix: str):
         """A configured :class:`NonlinearProblem` for a residual F in ``self.w``."""
-        nullspace = rigid_body_modes(self.V) if self.solver_kind == "iterative" else None
+        nullspace = None
+        if self.solver_kind == "iterative":
+            nullspace = rigid_modes_nullspace(self.V, self.model.rigid_modes(self.gdim))
         return make_snes_problem(F, self.w, self.bcs, prefix, self.petsc_options,
                                  near_nullspace=nullspace)
 
-    def solve(self) -> int:
-        """Solve for ``self.w``; return SNES iterations; on failure restore the last good state."""
+    def solve(self, commit: bool = True) -> int:
+        """Solve for ``self.w``; return SNES iterations; on failure restore the last good
+        state. ``commit``: accept the quadrature-point state of the solution (one load step)."""
         if self._snes is None:
             self._snes = self.snes_problem(self.residual(), self.prefix)
         self._snes.solve()
-        return self.checked(self._snes, "static micropolar solve")
+        its = self.checked(self._snes, "static solve")
+        if commit:
+            self.state.commit()
+        return its
 
     def checked(self, snes_problem, what: str) -> int:
         """SNES iterations of a converged solve of ``w`` (else raise, restoring the last
@@ -245,24 +420,52 @@ class MicropolarProblem:
         """1 for a converged linear solve of ``w`` (else raise as :meth:`checked`)."""
         return self._checked(lambda: check_ksp_converged(ksp, what), what)
 
+    def _restore(self) -> None:
+        self.w.x.array[:] = self.last_good
+        self.w.x.scatter_forward()
+        self.state.restore()
+
     def _checked(self, check, what: str) -> int:
         try:
             its = check()
         except Exception as err:
-            self.w.x.array[:] = self._last_good
-            self.w.x.scatter_forward()
+            self._restore()
             where = self.write_checkpoint()
             if where is not None:
                 err.args = (f"{err.args[0]}; last converged state written to {where}",)
             raise
         if not np.all(np.isfinite(self.w.x.array)):
-            self.w.x.array[:] = self._last_good
+            self._restore()
             raise FloatingPointError(f"{what}: solution has NaN/Inf; last converged state restored")
-        self._last_good[:] = self.w.x.array
+        self.last_good[:] = self.w.x.array
         return its
 
+    # ---- state ------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """This rank's owned dof values (and their global indices) and the committed
+        quadrature-point state (``state/<name>``)."""
+        imap = self.V.dofmap.index_map
+        n = imap.size_local * self.V.dofmap.index_map_bs
+        out = {"values": self.w.x.array[:n].copy(),
+               "global_dofs": imap.local_to_global(np.arange(imap.size_local, dtype=np.int32))}
+        out.update({f"state/{k}": v for k, v in self.state.state_dict().items()})
+        return out
+
+    def load_state(self, data) -> None:
+        """Restore :meth:`state_dict` output of the same partition."""
+        n = len(data["values"])
+        size = self.V.dofmap.index_map.size_local * self.V.dofmap.index_map_bs
+        if n != size:
+            raise ValueError(f"the saved continuum state holds {n} dofs on this rank, the "
+                             f"problem {size} (another mesh, degree or rank count?)")
+        self.w.x.array[:n] = data["values"]
+        self.w.x.scatter_forward()
+        self.last_good[:] = self.w.x.array
+        if self.state:
+            self.state.load_state({k[len("state/"):]: data[k] for k in data if k.startswith("state/")})
+
     def write_checkpoint(self, directory: str | Path | None = None) -> Path | None:
-        """Write the current state: owned dof values and their global indices, one file per rank."""
+        """Write :meth:`state_dict`, one file per rank."""
         directory = self.checkpoint_dir if directory is None else Path(directory)
         if directory is None:
             return None
@@ -270,12 +473,7 @@ class MicropolarProblem:
         if comm.rank == 0:
             directory.mkdir(parents=True, exist_ok=True)
         comm.barrier()
-        imap = self.V.dofmap.index_map
-        bs = self.V.dofmap.index_map_bs
-        n = imap.size_local * bs
-        np.savez(directory / f"continuum_rank{comm.rank}_of{comm.size}.npz",
-                 values=self.w.x.array[:n],
-                 global_dofs=imap.local_to_global(np.arange(imap.size_local, dtype=np.int32)))
+        np.savez(directory / f"continuum_rank{comm.rank}_of{comm.size}.npz", **self.state_dict())
         return directory
 
     def read_checkpoint(self, directory: str | Path) -> None:
@@ -284,8 +482,19 @@ class MicropolarProblem:
         path = Path(directory) / f"continuum_rank{comm.rank}_of{comm.size}.npz"
         if not path.exists():
             raise FileNotFoundError(f"no checkpoint {path} (written with a different rank count?)")
-        data = np.load(path)
-        n = len(data["values"])
-        self.w.x.array[:n] = data["values"]
-        self.w.x.scatter_forward()
-        self._last_good[:] = self.w.x.array
+        with np.load(path) as data:
+            self.load_state({k: data[k] for k in data.files})
+
+
+class MicropolarProblem(ContinuumProblem):
+    """Quasi-static linear micropolar elasticity: a :class:`ContinuumProblem` of the
+    :class:`~granfe.models.micropolar.Micropolar` model built from its material.
+
+    ``degree`` is the pair of Lagrange degrees of (u, phi), default (2, 1).
+    """
+
+    def __init__(self, domain: _mesh.Mesh, material: MicropolarMaterial, *,
+                 degree: tuple[int, int] = (2, 1), **kwargs):
+        if not isinstance(material, MicropolarMaterial):
+            raise TypeError(f"material must be a MicropolarMaterial, got {type(material).__name__}")
+        super().__init__(domain, Micropolar(material), degree=degree, **kwargs)

@@ -22,6 +22,7 @@ __all__ = [
     "check_converged",
     "check_ksp_converged",
     "rigid_body_modes",
+    "rigid_modes_nullspace",
 ]
 
 DIRECT = {
@@ -113,35 +114,29 @@ def check_ksp_converged(ksp: PETSc.KSP, what: str) -> int:
     )
 
 
-def rigid_body_modes(V: fem.FunctionSpace) -> PETSc.NullSpace:
-    """Orthonormalised micropolar rigid-body modes of the mixed (u, phi) space.
+def rigid_modes_nullspace(V: fem.FunctionSpace, modes) -> PETSc.NullSpace:
+    """Orthonormalised rigid modes of a model's mixed space as a PETSc nullspace.
 
-    Translations (u = e_k, phi = 0) and rotations (u = e_k x x, phi = e_k): 3 in 2D
-    (phi_z only), 6 in 3D. Used as the AMG near-nullspace.
+    ``modes``: per mode one callable ``x -> values`` per field, or None for a zero field
+    (:meth:`granfe.models.base.ContinuumModel.rigid_modes`). Used as the AMG near-nullspace.
     """
-    gdim = V.mesh.geometry.dim
-    modes = []
-
-    def mode(u_of_x, phi_value):
+    vecs = []
+    for mode in modes:
         f = fem.Function(V)
-        f.sub(0).interpolate(u_of_x)
-        if phi_value is not None:
-            f.sub(1).interpolate(lambda x: np.tile(np.reshape(phi_value, (-1, 1)), x.shape[1])
-                                 if np.ndim(phi_value) else np.full(x.shape[1], float(phi_value)))
-        return f
-
-    for k in range(gdim):
-        modes.append(mode(lambda x, k=k: np.vstack([np.full(x.shape[1], float(i == k))
-                                                     for i in range(gdim)]), None))
-    if gdim == 2:
-        modes.append(mode(lambda x: np.vstack([-x[1], x[0]]), 1.0))
-    else:
-        for k in range(3):
-            e = np.eye(3)[k]
-            modes.append(mode(lambda x, e=e: np.cross(e[:, None], x[:3], axis=0), e))
-    vecs = [f.x.petsc_vec.copy() for f in modes]
+        for i, fn in enumerate(mode):
+            if fn is not None:
+                f.sub(i).interpolate(fn)
+        vecs.append(f.x.petsc_vec.copy())
     for i, v in enumerate(vecs):  # modified Gram-Schmidt
         for u in vecs[:i]:
             v.axpy(-v.dot(u), u)
         v.normalize()
     return PETSc.NullSpace().create(vectors=vecs, comm=V.mesh.comm)
+
+
+def rigid_body_modes(V: fem.FunctionSpace) -> PETSc.NullSpace:
+    """The micropolar rigid-body modes of a mixed (u, phi) space: translations
+    (u = e_k, phi = 0) and rotations (u = e_k x x, phi = e_k), 3 in 2D, 6 in 3D."""
+    from granfe.models.micropolar import Micropolar
+
+    return rigid_modes_nullspace(V, Micropolar.rigid_modes(None, V.mesh.geometry.dim))

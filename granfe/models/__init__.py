@@ -1,0 +1,27 @@
+"""Continuum models, one file each, found by name in :data:`MODELS`.
+
+Adding a model: one file in this package with a :class:`~granfe.models.base.ContinuumModel`
+subclass (and its material dataclass), plus one row in :data:`MODELS`.
+"""
+
+from granfe.models.base import ContinuumModel, Field
+from granfe.models.drucker_prager import MicropolarDruckerPrager
+from granfe.models.micropolar import Micropolar
+from granfe.models.strain_memory import StrainMemory
+
+__all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micropolar",
+           "MicropolarDruckerPrager", "StrainMemory"]
+
+MODELS: dict[str, type[ContinuumModel]] = {
+    Micropolar.name: Micropolar,
+    StrainMemory.name: StrainMemory,
+    MicropolarDruckerPrager.name: MicropolarDruckerPrager,
+}
+
+
+def model_class(name: str) -> type[ContinuumModel]:
+    """The model registered under ``name``."""
+    try:
+        return MODELS[name]
+    except KeyError:
+        raise ValueError(f"unknown continuum model {name!r}; known: {sorted(MODELS)}") from None

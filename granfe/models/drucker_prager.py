@@ -1,0 +1,250 @@
+"""Micropolar (Cosserat) Drucker-Prager elastoplasticity, small strain (de Borst 1993).
+
+Fields and elasticity are those of :mod:`granfe.models.micropolar`. Plastic flow acts on
+the symmetric part of the force stress and on the couple stress; the skew part of the
+force stress stays elastic. With ``s`` the deviator of ``sym sigma`` (3 x 3, so that in
+plane strain the out-of-plane stress and plastic strain are kept) and ``p = tr sigma / 3``
+(tension positive), the yield function and plastic potential are::
+
+    f = tau + A p - (k0 + H e_q),     g = tau + B p,
+    tau = sqrt(J2),  J2 = 1/2 s:s + 1/2 m:m / l^2,   l^2 = gamma / (2 G),
+
+with ``G = mu + kappa / 2`` the classical shear modulus. That plastic length makes the
+return mapping radial: the deviatoric force stress and the couple stress are scaled by the
+same factor ``1 - G dl / tau_trial``, so the whole update is closed form (UFL conditionals)
+and SNES gets the consistent tangent from ``ufl.derivative``. Where the radial return
+would cross the cone's apex the stress returns to the apex. Constant ``A, B, k0`` come
+from a Mohr-Coulomb friction angle, dilatancy angle and cohesion through a stated match
+(:class:`DruckerPragerMaterial`). Quadrature-point state: plastic strain (3 x 3), plastic
+curvature, equivalent plastic strain ``e_q`` (the accumulated multiplier), and the yield
+indicator of the last committed step.
+
+Couple stress elasticity in the plastic model is gamma only (``alpha = beta = 0``): the
+radial return needs the curvature energy to be ``gamma/2 kap:kap``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import dolfinx_solver  # noqa: F401
+
+import ufl
+
+from granfe.materials import MicropolarMaterial
+from granfe.models.micropolar import Micropolar, curvature, strain
+
+__all__ = ["DruckerPragerMaterial", "MicropolarDruckerPrager", "drucker_prager_constants"]
+
+MATCHES = ("triaxial_compression", "plane_strain")
+
+
+def drucker_prager_constants(friction_deg: float, dilatancy_deg: float, cohesion: float,
+                             match: str) -> tuple[float, float, float]:
+    """``(A, B, k0)`` of ``f = sqrt(J2) + A p - k0`` matched to Mohr-Coulomb ``(c, phi, psi)``.
+
+    ``triaxial_compression``: the cone through the Mohr-Coulomb compression meridian
+    (3D triaxial compression peaks at ``sigma_1 = sigma_3 tan^2(45 + phi/2) + 2 c
+    tan(45 + phi/2)``). ``plane_strain``: the cone that gives Mohr-Coulomb's collapse
+    stresses in plane strain when the out-of-plane plastic strain rate is zero (for any
+    dilatancy; for psi = phi it is the familiar ``A = 3 tan phi / sqrt(9 + 12 tan^2 phi)``),
+    so that a plane-strain collapse load compares with Mohr-Coulomb solutions (Prandtl).
+    """
+    if match not in MATCHES:
+        raise ValueError(f"match must be one of {MATCHES}, got {match!r}")
+    phi, psi = math.radians(friction_deg), math.radians(dilatancy_deg)
+    if match == "triaxial_compression":
+        A = 2 * math.sqrt(3) * math.sin(phi) / (3 - math.sin(phi))
+        B = 2 * math.sqrt(3) * math.sin(psi) / (3 - math.sin(psi))
+        k0 = 2 * math.sqrt(3) * cohesion * math.cos(phi) / (3 - math.sin(phi))
+        return A, B, k0
+    # plane strain: zero out-of-plane plastic strain rate gives s_zz = -2 B tau / 3, so
+    # tau = t / D with t the in-plane maximum shear stress and D = sqrt(1 - B^2 / 3);
+    # the dilatancy ratio of the flow, B / D, is sin(psi)
+    B = math.sin(psi) / math.sqrt(1 + math.sin(psi) ** 2 / 3)
+    D = math.sqrt(1 - B**2 / 3)
+    A = math.sin(phi) / (D + math.sin(phi) * B / 3)
+    k0 = cohesion * math.cos(phi) * (1 - A * B / 3) / D
+    return A, B, k0
+
+
+@dataclass(frozen=True)
+class DruckerPragerMaterial:
+    """Micropolar elasticity plus a Drucker-Prager cone matched to Mohr-Coulomb.
+
+    Attributes:
+        elastic: the micropolar elastic constants (``alpha = beta = 0``).
+        cohesion: c [Pa] (>= 0).
+        friction_deg: phi [deg] in [0, 90).
+        dilatancy_deg: psi [deg] in [0, phi] (non-associated below phi).
+        hardening: H [Pa] per unit equivalent plastic strain (negative softens).
+        match: ``"triaxial_compression"`` (3D) or ``"plane_strain"`` (2D), see
+            :func:`drucker_prager_constants`.
+    """
+
+    elastic: MicropolarMaterial
+    cohesion: float
+    friction_deg: float
+    dilatancy_deg: float = 0.0
+    hardening: float = 0.0
+    match: str = "plane_strain"
+
+    def __post_init__(self):
+        if not isinstance(self.elastic, MicropolarMaterial):
+            raise TypeError("DruckerPragerMaterial.elastic must be a MicropolarMaterial")
+        e = self.elastic
+        if e.alpha != 0.0 or e.beta != 0.0:
+            raise ValueError("DruckerPragerMaterial.elastic: alpha and beta must be 0 (the "
+                             "closed-form return needs a gamma-only couple-stress energy)")
+        checks = (
+            ("cohesion", self.cohesion >= 0, ">= 0 Pa"),
+            ("friction_deg", 0 <= self.friction_deg < 90, "in [0, 90) degrees"),
+            ("dilatancy_deg", 0 <= self.dilatancy_deg <= self.friction_deg,
+             "in [0, friction_deg] degrees"),
+            ("hardening", math.isfinite(self.hardening), "finite"),
+        )
+        for name, ok, rule in checks:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
+                raise ValueError(f"DruckerPragerMaterial.{name} must be {rule}, got {value!r}")
+        if self.match not in MATCHES:
+            raise ValueError(f"DruckerPragerMaterial.match must be one of {MATCHES}, "
+                             f"got {self.match!r}")
+        A, _, k0 = self.constants
+        if A == 0 and k0 == 0:
+            raise ValueError("DruckerPragerMaterial: cohesion 0 with friction 0 has no strength")
+        G = e.mu + e.kappa / 2
+        if self.hardening <= -G:
+            raise ValueError(f"DruckerPragerMaterial.hardening must be > -G = {-G!r} Pa")
+
+    @property
+    def constants(self) -> tuple[float, float, float]:
+        """``(A, B, k0)``: friction and dilatancy coefficients and the cone's strength [Pa]."""
+        return drucker_prager_constants(self.friction_deg, self.dilatancy_deg, self.cohesion,
+                                        self.match)
+
+    @property
+    def shear_modulus(self) -> float:
+        return self.elastic.mu + self.elastic.kappa / 2
+
+    @property
+    def bulk_modulus(self) -> float:
+        e = self.elastic
+        return e.lam + 2 * self.shear_modulus / 3
+
+
+def _to3(t, gdim):
+    """A gdim x gdim tensor embedded in 3 x 3 (plane strain: zeros out of plane)."""
+    if gdim == 3:
+        return t
+    return ufl.as_matrix([[t[0, 0], t[0, 1], 0], [t[1, 0], t[1, 1], 0], [0, 0, 0]])
+
+
+def _from3(t, gdim):
+    if gdim == 3:
+        return t
+    return ufl.as_matrix([[t[0, 0], t[0, 1]], [t[1, 0], t[1, 1]]])
+
+
+class MicropolarDruckerPrager(Micropolar):
+    """Micropolar Drucker-Prager elastoplasticity with a :class:`DruckerPragerMaterial`."""
+
+    name = "micropolar_drucker_prager"
+    linear = False
+    material_type = DruckerPragerMaterial
+    # no divergence test: a step starts from a converged state whose residual is only the
+    # boundary increment (x - g on the Dirichlet rows), orders of magnitude below the force
+    # residual of the first iterate; for the same reason no line search (it would compare
+    # the two and shrink every step)
+    solver_options = {"snes_max_it": 50, "snes_divergence_tolerance": 1e300}
+
+    def constant_values(self, material):
+        values = super().constant_values(material.elastic)
+        A, B, k0 = material.constants
+        values.update(A=A, B=B, k0=k0, H=material.hardening)
+        return values
+
+    def make_constants(self, domain):
+        from types import SimpleNamespace
+
+        from dolfinx import default_scalar_type, fem
+
+        return SimpleNamespace(**{k: fem.Constant(domain, default_scalar_type(v))
+                                  for k, v in self.constant_values(self.material).items()})
+
+    def state_variables(self, gdim):
+        return {"plastic_strain": (3, 3), "plastic_curvature": (2,) if gdim == 2 else (3, 3),
+                "equivalent_plastic_strain": (), "yielding": ()}
+
+    # ---- the return mapping ---------------------------------------------------------
+    def _return(self, w, state):
+        """Trial stresses from the committed plastic state, and their return to the cone.
+
+        Returns a dict of the updated stresses (gdim blocks) and plastic increments."""
+        c = self.constants
+        u, phi = w
+        gdim = ufl.shape(u)[0]
+        G = c.mu + c.kappa / 2
+        K = c.lam + 2 * G / 3
+        I3 = ufl.Identity(3)
+        eps = _to3(strain(u, phi), gdim)
+        eps_e = eps - state["plastic_strain"]
+        sym_e, skw_e = ufl.sym(eps_e), ufl.skew(eps_e)
+        vol = ufl.tr(eps_e)
+        kap_e = curvature(phi) - state["plastic_curvature"]
+        s_tr = 2 * G * ufl.dev(sym_e)
+        p_tr = K * vol
+        m_tr = c.gamma * kap_e
+        l2 = c.gamma / (2 * G)
+        tau_tr = ufl.sqrt(0.5 * ufl.inner(s_tr, s_tr) + 0.5 * ufl.inner(m_tr, m_tr) / l2 + 1e-30)
+        eq = state["equivalent_plastic_strain"]
+        f_tr = tau_tr + c.A * p_tr - (c.k0 + c.H * eq)
+        dl_cone = ufl.max_value(f_tr, 0) / (G + K * c.A * c.B + c.H)
+        apex = ufl.And(f_tr > 0, tau_tr - G * dl_cone < 0)
+        # apex: the deviatoric and couple stresses vanish, the mean stress meets the cone
+        # (without dilatancy or hardening the apex is reached by no flow: the mean stress is
+        # put on the apex, p = k / A)
+        stiff = K * c.A * c.B + c.H
+        dl_apex = (c.A * p_tr - (c.k0 + c.H * eq)) / ufl.max_value(stiff, 1e-300)
+        scale = ufl.conditional(apex, 0.0, 1 - G * dl_cone / tau_tr)
+        dl = ufl.conditional(apex, dl_apex, dl_cone)
+        p_apex = ufl.conditional(stiff > 0, p_tr - K * c.B * dl_apex,
+                                 (c.k0 + c.H * eq) / ufl.max_value(c.A, 1e-300))
+        p = ufl.conditional(apex, p_apex, p_tr - K * c.B * dl_cone)
+        s, m = scale * s_tr, scale * m_tr
+        d_plastic_dev = (1 - scale) * s_tr / (2 * G)
+        d_curv = (1 - scale) * kap_e
+        sigma3 = s + p * I3 + c.kappa * skw_e
+        return {
+            "sigma": _from3(sigma3, gdim), "m": m, "f_trial": f_tr,
+            "plastic_strain": state["plastic_strain"] + d_plastic_dev + (p_tr - p) / (3 * K) * I3,
+            "plastic_curvature": state["plastic_curvature"] + d_curv,
+            "equivalent_plastic_strain": eq + ufl.conditional(apex, dl + tau_tr / G, dl),
+            "yielding": ufl.conditional(f_tr > 0, 1.0, 0.0),
+        }
+
+    def state_update(self, w, state):
+        r = self._return(w, state)
+        return {k: r[k] for k in self.state_variables(ufl.shape(w[0])[0])}
+
+    def stresses(self, w, state):
+        r = self._return(w, state)
+        return {"sigma": r["sigma"], "couple_stress": r["m"]}
+
+    def internal_work(self, w, dw, state):
+        r = self._return(w, state)
+        return ufl.inner(r["sigma"], strain(*dw)) + ufl.inner(r["m"], curvature(dw[1]))
+
+    def stored_energy(self, w, state):
+        """Elastic energy of the elastic strains (the stored part of the work)."""
+        c = self.constants
+        u, phi = w
+        gdim = ufl.shape(u)[0]
+        G = c.mu + c.kappa / 2
+        eps_e = _to3(strain(u, phi), gdim) - state["plastic_strain"]
+        kap_e = curvature(phi) - state["plastic_curvature"]
+        sym_e = ufl.sym(eps_e)
+        return (c.lam / 2 * ufl.tr(eps_e) ** 2 + G * ufl.inner(sym_e, sym_e)
+                + c.kappa / 2 * ufl.inner(ufl.skew(eps_e), ufl.skew(eps_e))
+                + c.gamma / 2 * ufl.inner(kap_e, kap_e))

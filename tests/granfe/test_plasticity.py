@@ -1,0 +1,166 @@
+"""Micropolar Drucker-Prager: Mohr-Coulomb peaks in triaxial and plane-strain compression,
+the flow rule's dilatancy, the consistent tangent (Taylor test), validation."""
+
+import math
+
+import dolfinx_solver  # noqa: F401
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem, mesh
+from mpi4py import MPI
+
+from granfe.materials import MicropolarMaterial
+from granfe.models.drucker_prager import (DruckerPragerMaterial, MicropolarDruckerPrager,
+                                          drucker_prager_constants)
+from granfe.probe import probe
+from granfe.problem import ContinuumProblem
+
+ELASTIC = MicropolarMaterial.from_engineering(50e6, 0.25, length=0.01, kappa_over_mu=0.5,
+                                              gamma_over_l2mu=1.0)
+C = 10e3
+
+
+def mohr_coulomb_peak(sigma3, phi_deg, c=C):
+    t = math.tan(math.radians(45 + phi_deg / 2))
+    return sigma3 * t**2 + 2 * c * t
+
+
+def _at(axis, value):
+    return lambda x: np.isclose(x[axis], value)
+
+
+def triaxial(sigma3, phi=30.0, psi=10.0, n=1, comm=MPI.COMM_WORLD):
+    """Unit cube, symmetry planes x = y = z = 0, confining traction on x = 1 and y = 1,
+    the top z = 1 pushed down: homogeneous triaxial compression."""
+    mat = DruckerPragerMaterial(ELASTIC, C, phi, psi, match="triaxial_compression")
+    p = ContinuumProblem(mesh.create_unit_cube(comm, n, n, n), MicropolarDruckerPrager(mat),
+                         degree=(1, 1), prefix=f"tri{n}_{int(sigma3)}_")
+    for axis, name in enumerate(("u_x", "u_y", "u_z")):
+        p.fix(_at(axis, 0.0), name)
+    p.fix(lambda x: np.isclose(x[0], 0) | np.isclose(x[1], 0) | np.isclose(x[2], 0)
+          | np.isclose(x[2], 1), "phi")
+    p.traction(_at(0, 1.0), (-sigma3, 0.0, 0.0))
+    p.traction(_at(1, 1.0), (0.0, -sigma3, 0.0))
+    return p, p.fix(_at(2, 1.0), "u_z", 0.0), mat
+
+
+@pytest.mark.parametrize("sigma3", [50e3, 100e3, 300e3])
+def test_triaxial_peak_is_mohr_coulomb(sigma3):
+    p, top, _ = triaxial(sigma3)
+    axial = []
+    for dz in (-5e-4, -1e-3, -2e-3, -4e-3, -8e-3, -0.015, -0.03):
+        top.value = dz
+        p.solve()
+        axial.append(-p.reaction(_at(2, 1.0), "u_z"))
+    assert max(axial) == pytest.approx(mohr_coulomb_peak(sigma3, 30.0), rel=1e-10)
+    assert axial[0] < 0.9 * max(axial)                      # it starts elastic
+    assert p.state.committed["yielding"].x.array.min() == 1.0
+
+
+def test_triaxial_dilatancy_follows_the_flow_rule():
+    p, top, mat = triaxial(100e3, phi=30.0, psi=10.0)
+    _, B, _ = mat.constants
+    corner = np.array([[1.0, 1.0, 1.0]])
+    strains = []
+    for dz in (-0.02, -0.025, -0.03):          # all past the peak (perfectly plastic)
+        top.value = dz
+        p.solve()
+        u = probe(p.w.sub(0).collapse(), corner)[0]
+        strains.append((u.sum(), u[2]))        # (volumetric, axial) strain of the unit cube
+    (v1, a1), (v2, a2) = strains[1], strains[2]
+    ratio = (v2 - v1) / (a2 - a1)
+    assert ratio == pytest.approx(B / (B / 3 - 1 / math.sqrt(3)), rel=1e-8)
+    assert ratio < 0                            # compression axially, dilation in volume
+
+
+@pytest.mark.parametrize("psi", [0.0, 15.0, 30.0])
+def test_plane_strain_match_reaches_mohr_coulomb(psi):
+    """Biaxial plane-strain compression: with the plane-strain match the peak tends to
+    Mohr-Coulomb's as the out-of-plane elastic strain rate dies out (it rises monotonically
+    and is within 2e-4 after 10 % axial strain, for any dilatancy)."""
+    mat = DruckerPragerMaterial(ELASTIC, C, 30.0, psi, match="plane_strain")
+    p = ContinuumProblem(mesh.create_unit_square(MPI.COMM_WORLD, 1, 1),
+                         MicropolarDruckerPrager(mat), degree=(1, 1), prefix=f"ps{int(psi)}_")
+    p.fix(_at(0, 0.0), "u_x")
+    p.fix(_at(1, 0.0), "u_y")
+    p.fix(lambda x: np.isclose(x[0], 0) | np.isclose(x[1], 0) | np.isclose(x[1], 1), "phi")
+    p.traction(_at(0, 1.0), (-100e3, 0.0))
+    top = p.fix(_at(1, 1.0), "u_y", 0.0)
+    axial = []
+    for dz in np.linspace(0.0, -0.1, 21)[1:]:
+        top.value = dz
+        p.solve()
+        axial.append(-p.reaction(_at(1, 1.0), "u_y"))
+    mc = mohr_coulomb_peak(100e3, 30.0)
+    assert axial[-1] == pytest.approx(mc, rel=2e-4)
+    assert all(a <= mc * (1 + 1e-10) for a in axial)
+    assert np.all(np.diff(axial) >= -1e-6 * mc)
+
+
+def test_plane_strain_constants_are_the_textbook_ones_when_associated():
+    A, B, k0 = drucker_prager_constants(30.0, 30.0, C, "plane_strain")
+    t = math.tan(math.radians(30.0))
+    assert A == pytest.approx(3 * t / math.sqrt(9 + 12 * t**2), rel=1e-14)
+    assert B == pytest.approx(A, rel=1e-14)
+    assert k0 == pytest.approx(3 * C / math.sqrt(9 + 12 * t**2), rel=1e-14)
+
+
+def test_consistent_tangent_taylor():
+    """|R(w + h dw) - R(w) - h J(w) dw| falls as h^2 in a plastic trial state with hardening
+    (an inconsistent tangent gives h^1). Every point is well inside the plastic branch, so a
+    small perturbation crosses no kink of the return mapping."""
+    p, top, _ = triaxial(100e3, n=2)
+    p.model.update(DruckerPragerMaterial(ELASTIC, C, 30.0, 10.0, hardening=2e6,
+                                         match="triaxial_compression"))
+    for dz in (-0.01, -0.02):
+        top.value = dz
+        p.solve()
+    top.value = -0.025
+    p.solve(commit=False)                         # a trial state past the committed one
+    assert p.state.committed["yielding"].x.array.min() == 1.0
+    F = p.residual()
+    J = ufl.derivative(F, p.w)
+    rng = np.random.default_rng(0)
+    dw = fem.Function(p.V)
+    dw.x.array[:] = rng.standard_normal(dw.x.array.size) * 1e-4
+    dw.x.scatter_forward()
+    Fc, Jdw = fem.form(F), fem.form(ufl.action(J, dw))
+    w0 = p.w.x.array.copy()
+
+    def residual():
+        return fem.assemble_vector(Fc).array.copy()
+
+    R0, JdW = residual(), fem.assemble_vector(Jdw).array.copy()
+    remainders = []
+    for h in (1e-2, 5e-3, 2.5e-3, 1.25e-3):
+        p.w.x.array[:] = w0 + h * dw.x.array
+        remainders.append(np.linalg.norm(residual() - R0 - h * JdW))
+    p.w.x.array[:] = w0
+    rates = np.log2(np.array(remainders[:-1]) / remainders[1:])
+    assert np.all(rates > 1.8), rates
+
+
+@pytest.mark.mpi
+def test_triaxial_on_any_rank_count():
+    p, top, _ = triaxial(100e3, n=2)
+    for dz in np.linspace(0.0, -0.02, 6)[1:]:
+        top.value = dz
+        p.solve()
+    assert -p.reaction(_at(2, 1.0), "u_z") == pytest.approx(mohr_coulomb_peak(100e3, 30.0),
+                                                             rel=1e-10)
+
+
+@pytest.mark.parametrize("kwargs, key", [
+    (dict(cohesion=-1.0, friction_deg=30.0), "cohesion"),
+    (dict(cohesion=1.0, friction_deg=95.0), "friction_deg"),
+    (dict(cohesion=1.0, friction_deg=20.0, dilatancy_deg=25.0), "dilatancy_deg"),
+    (dict(cohesion=1.0, friction_deg=20.0, match="triaxial"), "match"),
+    (dict(cohesion=0.0, friction_deg=0.0), "no strength"),
+])
+def test_material_is_validated(kwargs, key):
+    with pytest.raises(ValueError, match=key):
+        DruckerPragerMaterial(ELASTIC, **kwargs)
+    with pytest.raises(ValueError, match="alpha and beta must be 0"):
+        DruckerPragerMaterial(MicropolarMaterial(1.0, 1.0, 0.1, beta=0.1), 1.0, 20.0)
