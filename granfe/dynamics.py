@@ -1,8 +1,8 @@
 """Implicit dynamics of a continuum model: generalized-alpha (Chung & Hulbert 1993).
 
-The inertia is the model's (micropolar: mass ``rho`` on u, rotary inertia ``rho j`` on phi). The spectral radius at
-infinite frequency ``rho_inf`` in [0, 1] is the one damping parameter: ``rho_inf = 1``
-gives alpha_m = alpha_f = 1/2, beta = 1/4, gamma = 1/2, the trapezoidal (Newmark
+The inertia is the model's (micropolar: mass ``rho`` on u, rotary inertia ``rho j`` on
+phi). The spectral radius at infinite frequency ``rho_inf`` in [0, 1] is the one damping
+parameter: ``rho_inf = 1`` gives alpha_m = alpha_f = 1/2, beta = 1/4, gamma = 1/2, the trapezoidal (Newmark
 average acceleration) family, which conserves the energy of a linear elastic body
 exactly; smaller values damp high frequencies with second-order accuracy.
 """
@@ -12,12 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
-from petsc4py import PETSc
 
 from granfe.problem import ContinuumProblem
 
@@ -74,7 +74,7 @@ class GeneralizedAlpha:
         self.v = fem.Function(V, name="velocity")
         self.a = fem.Function(V, name="acceleration")
         w, model, state = problem.w, problem.model, problem.state.committed
-        dt_, b, g = self.dt, p.beta, p.gamma
+        dt_, b = self.dt, p.beta
         a_new = (w - self.w_old - dt_ * self.v) / (b * dt_**2) - (1 - 2 * b) / (2 * b) * self.a
         w_mid = (1 - p.alpha_f) * w + p.alpha_f * self.w_old
         a_mid = (1 - p.alpha_m) * a_new + p.alpha_m * self.a
@@ -293,7 +293,7 @@ class _AffineStep:
         problem, st = self.problem, self.stepper
         bcs = list(problem.bcs)
         key = (_values(self._matrix_constants), tuple(id(bc) for bc in bcs))
-        if key != self._matrix_key or any(a is not b for a, b in zip(bcs, self._bcs)):
+        if key != self._matrix_key or any(a is not b for a, b in zip(bcs, self._bcs, strict=False)):
             self._assemble_matrices(bcs)
             self._matrix_key, self._bcs = key, bcs
             dofs = [bc.dof_indices() for bc in bcs]

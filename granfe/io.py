@@ -30,7 +30,7 @@ class ContinuumWriter:
     """
 
     def __init__(self, problem: ContinuumProblem, out_dir: str | Path, name: str = "continuum"):
-        domain, gdim = problem.domain, problem.gdim
+        domain = problem.domain
         k = problem.degree[0]
         self.problem = problem
         out_dir = Path(out_dir)

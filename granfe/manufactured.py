@@ -7,11 +7,11 @@ uses: ``f = -div sigma``, ``l = -div m + e_ijk sigma_ij`` (2D: ``sigma_01 - sigm
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
 
 from granfe.forms import stresses
 from granfe.materials import MicropolarMaterial
@@ -44,9 +44,11 @@ def exact_fields(domain):
 
 
 def manufactured_problem(domain, degree, material=MMS_MATERIAL, **kwargs):
-    """Problem whose exact solution is :func:`exact_fields` (body force and couple from the strong form)."""
+    """Problem whose exact solution is :func:`exact_fields` (body force and couple from the
+    strong form)."""
     u_ex, phi_ex, u_np, phi_np = exact_fields(domain)
-    c_problem = MicropolarProblem(domain, material, degree=degree, **{"prefix": f"mms{id(domain)}_", **kwargs})
+    c_problem = MicropolarProblem(domain, material, degree=degree,
+                                  **{"prefix": f"mms{id(domain)}_", **kwargs})
     sigma, m = stresses(u_ex, phi_ex, c_problem.constants)
     gdim = domain.geometry.dim
     if gdim == 2:
@@ -62,6 +64,7 @@ def manufactured_problem(domain, degree, material=MMS_MATERIAL, **kwargs):
 
 
 def errors(problem, u_ex, phi_ex):
+    """L2 and H1 seminorm errors of u and phi against the exact fields."""
     u, phi = problem.w.split()
     comm = problem.domain.comm
     dx = ufl.dx(metadata={"quadrature_degree": 8})
@@ -74,6 +77,7 @@ def errors(problem, u_ex, phi_ex):
 
 
 def rates(meshes, degree):
+    """Convergence rates between the last two meshes, and every mesh's errors."""
     errs = []
     for domain in meshes:
         problem, u_ex, phi_ex = manufactured_problem(domain, degree)

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 from dolfinx import fem, geometry
-from mpi4py import MPI
 
 __all__ = ["probe"]
 

@@ -18,18 +18,24 @@ from collections.abc import Callable
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
 import ufl
-from dolfinx import default_scalar_type, fem, mesh as _mesh
-from mpi4py import MPI
-from petsc4py import PETSc
+from dolfinx import default_scalar_type, fem
+from dolfinx import mesh as _mesh
 
 from granfe.materials import MicropolarMaterial
 from granfe.models.base import ContinuumModel
 from granfe.models.micropolar import Micropolar
-from granfe.solvers import (ITERATIVE, check_converged, check_ksp_converged, make_snes_problem,
-                            rigid_modes_nullspace)
+from granfe.solvers import (
+    ITERATIVE,
+    check_converged,
+    check_ksp_converged,
+    make_snes_problem,
+    rigid_modes_nullspace,
+)
 from granfe.spaces import components, model_space, split, sub_space
 from granfe.state import QuadratureState
 
@@ -272,7 +278,7 @@ class ContinuumProblem:
 
     # ---- forms ------------------------------------------------------------------------
     def _surface_measure(self):
-        """ds over the loaded facets, and per load the tags it integrates over. A facet's
+        """Ds over the loaded facets, and per load the tags it integrates over. A facet's
         tag numbers the set of loads acting on it, so loads on overlapping facets add."""
         fdim = self.domain.topology.dim - 1
         if not self._surface:
@@ -354,9 +360,11 @@ class ContinuumProblem:
         return r
 
     def reaction(self, where: Where, component: str = "u"):
-        """The reaction on a boundary, the force its supports exert on the body: the internal
-        force minus the applied loads at its dofs, conjugate to ``component`` (``"u"``: the force vector [N, or N/m in
-        2D]; ``"u_x"``: one component; ``"phi"``: the reaction couple). Collective."""
+        """The reaction on a boundary, the force its supports exert on the body.
+
+        The internal force minus the applied loads at the boundary's dofs, conjugate to
+        ``component``: ``"u"`` the force vector [N, or N/m in 2D], ``"u_x"`` one component,
+        ``"phi"`` the reaction couple. Collective."""
         field, sub = self._component(component)
         f = self.fields[field]
         n = int(np.prod(f.shape)) if f.shape else 1

@@ -26,15 +26,14 @@ influence"). Solved with PETSc LU (MUMPS).
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
-
-import basix.ufl
-import numpy as np
-import scipy.sparse as sp
-import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
 
+import basix.ufl
 import dolfinx.fem.petsc
+import numpy as np
+import scipy.sparse as sp
+import ufl
 from dolfinx import default_scalar_type, fem, mesh
 
 from granfe.materials import MicropolarMaterial
@@ -191,7 +190,7 @@ class Rod1D:
         b.set(0.0)
         n_owned = self.V.dofmap.index_map.size_local * self.V.dofmap.bs
         with b.localForm() as bl:
-            for dof, load in zip(self.end_dofs(free), end_loads):
+            for dof, load in zip(self.end_dofs(free), end_loads, strict=False):
                 if 0 <= dof < n_owned:
                     bl.array[dof] += load
         b.assemble()

@@ -8,11 +8,10 @@ Any PETSc option can be overridden per problem.
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401
+from petsc4py import PETSc
 
-import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import NonlinearProblem
-from petsc4py import PETSc
 
 __all__ = [
     "DIRECT",

@@ -11,7 +11,8 @@ import dolfinx_solver  # noqa: F401  (orders MPI before dolfinx/petsc4py)
 
 import basix.ufl
 import ufl
-from dolfinx import fem, mesh as _mesh
+from dolfinx import fem
+from dolfinx import mesh as _mesh
 
 __all__ = ["model_space", "components", "split", "sub_space", "micropolar_space", "COMPONENTS"]
 

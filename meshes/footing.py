@@ -11,10 +11,10 @@ and beyond.
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import gmsh
 import numpy as np
-from mpi4py import MPI
 
 __all__ = ["strip_footing", "build"]
 

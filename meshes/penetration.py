@@ -18,10 +18,10 @@ In 2D the penetrator is the closed polyline of its half-plane section.
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import gmsh
 import numpy as np
-from mpi4py import MPI
 
 __all__ = ["chamber_2d", "chamber_3d", "build_chamber", "cone_penetrometer", "flat_pile",
            "STANDARD_CONE_RADIUS"]
@@ -75,7 +75,7 @@ def chamber_2d(model, width: float, depth: float, window_width: float, window_de
     pts = [occ.addPoint(x, y, 0) for x, y in ((-window_width / 2, 0), (-window_width / 2, -window_depth),
                                                (window_width / 2, -window_depth), (window_width / 2, 0))]
     occ.synchronize()
-    lines = [occ.addLine(a, b) for a, b in zip(pts, pts[1:])]
+    lines = [occ.addLine(a, b) for a, b in zip(pts, pts[1:], strict=False)]
     occ.synchronize()
     field = model.mesh.field
     dist = field.add("Distance")
@@ -219,7 +219,7 @@ def cone_penetrometer(dim: int = 3, radius: float = STANDARD_CONE_RADIUS, apex_d
             outline = [(0, 0), (radius, cone_height), (radius, cone_height + shaft_length),
                        (-radius, cone_height + shaft_length), (-radius, cone_height)]
             p = [occ.addPoint(x, y, 0, h) for x, y in outline]
-            for a, b in zip(p, p[1:] + p[:1]):
+            for a, b in zip(p, p[1:] + p[:1], strict=False):
                 occ.addLine(a, b)
         return _mesh_surface(build, 1, h)
 
@@ -238,7 +238,7 @@ def flat_pile(dim: int = 3, radius: float = 0.02, length: float = 0.1, h: float 
         def build(occ):
             outline = [(-radius, 0), (radius, 0), (radius, length), (-radius, length)]
             p = [occ.addPoint(x, y, 0, h) for x, y in outline]
-            for a, b in zip(p, p[1:] + p[:1]):
+            for a, b in zip(p, p[1:] + p[:1], strict=False):
                 occ.addLine(a, b)
         return _mesh_surface(build, 1, h)
 

@@ -8,10 +8,10 @@ from ``h_hole`` at the hole to ``h_far`` at distance ``W/2``.
 from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import gmsh
 import numpy as np
-from mpi4py import MPI
 
 __all__ = ["plate_with_hole", "build"]
 

@@ -24,9 +24,9 @@ import json
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 
 from coupling.monolithic1d import full_overlap
 from dem.glued import GluedLaw, GluedString

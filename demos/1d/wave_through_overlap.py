@@ -31,9 +31,9 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 
 from coupling.monolithic1d import AverageAcceleration, axial_overlap, rod_axial
 from dem.glued import SpringString

@@ -24,10 +24,10 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from dolfinx import fem, mesh
-from mpi4py import MPI
+from dolfinx import fem
 
 from coupling.punch import coupled_window, fe_block, lattice_block
 from coupling.staggered import StaggeredOptions

@@ -37,9 +37,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 
 from coupling.moving_window import MovingWindowParameters, MovingWindowPenetration
 from coupling.penetration import CouplingUnstable, PenetrationParameters
@@ -54,7 +54,8 @@ parser.add_argument("--servo-rate", type=float, default=None,
                     help="largest radius growth per servo cycle (0: a plain settle)")
 parser.add_argument("--seed", type=int, default=None, help="of the new grains' lattice")
 parser.add_argument("--chimney", type=float, default=None,
-                    help="half-width [cone radii] of the column kept up to the surface once the window travels (0: none)")
+                    help="half-width [cone radii] of the column kept up to the surface once the "
+                         "window travels (0: none)")
 args = parser.parse_args()
 quick = args.quick or os.environ.get("GRANFE_SHORT") == "1"
 comm = MPI.COMM_WORLD
@@ -173,12 +174,12 @@ if comm.rank == 0:
 
     if "after" in snapshots:  # the window travelled
         fig, axes = plt.subplots(1, 2, figsize=(11, 6), sharey=True)
-        for ax, key in zip(axes, ("before", "after")):
+        for ax, key in zip(axes, ("before", "after"), strict=False):
             s = snapshots[key]
             tc = ax.tricontourf(s["nodes"][:, 0], s["nodes"][:, 1], s["u"] * 1e3, levels=20, cmap="viridis")
             colors = np.where(s["kind"] == 1, "tab:red", "white")
             colors[s["n"]:] = "k"
-            ax.add_collection(PatchCollection([Circle(c, r) for c, r in zip(s["x"], s["r"])],
+            ax.add_collection(PatchCollection([Circle(c, r) for c, r in zip(s["x"], s["r"], strict=False)],
                                               facecolors=colors, edgecolors="0.3", linewidths=0.2))
             for box in s["boxes"]:   # the window (with its chimney once it travels)
                 (x0, y0), (x1, y1) = box.lo, box.hi
@@ -187,7 +188,8 @@ if comm.rank == 0:
             ax.set_ylim(s["lo"][1] - 0.03, cpt.surface + 0.01)
             ax.set_aspect("equal")
             ax.set_title(f"{key} the first travelling move (depth {s['depth'] * 1e3:.1f} mm)")
-        fig.colorbar(tc, ax=axes, label="|u| of the continuum [mm]; grains: white free, red ghost, black cone")
+        fig.colorbar(tc, ax=axes,
+                     label="|u| of the continuum [mm]; grains: white free, red ghost, black cone")
         fig.savefig(args.out / "window_move.png", dpi=130)
 
     results = {"parameters": prm.__dict__, "moving": moving.__dict__, "fixed_window_refused": refused,

@@ -22,9 +22,9 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 from scipy.special import kv
 
 from granfe.io import ContinuumWriter, render_png

@@ -29,9 +29,9 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 
 from granfe.io import ContinuumWriter
 from granfe.materials import MicropolarMaterial
@@ -96,7 +96,8 @@ results = {"inputs": {"half_width": b, "E": args.E, "nu": args.nu, "cohesion": a
                       "ranks": comm.size},
            "cases": []}
 
-for phi in frictions:
+def collapse(phi: float) -> dict:
+    """Push the footing to a settlement past collapse on a layer of friction angle phi."""
     material = DruckerPragerMaterial(elastic, args.cohesion, phi, phi, match="plane_strain")
     model = model_class("micropolar_drucker_prager")(material)
     problem = ContinuumProblem(data.mesh, model, facet_tags=data.facet_tags, tag_names=names,
@@ -124,7 +125,7 @@ for phi in frictions:
                      on_step=record, log=log)
     wall = time.perf_counter() - t0
     q_last = curve[-1][1]
-    # the plateau: the last fifth of the curve moves by less than a few per mille
+    # the plateau: how much the last fifth of the curve still moves
     tail = [q for t, q, _ in curve if t >= 0.8 * final]
     plateau = (max(tail) - min(tail)) / q_last
     with ContinuumWriter(problem, args.out, name=f"footing_phi{int(phi)}") as writer:
@@ -135,9 +136,13 @@ for phi in frictions:
             "newton_iterations": int(sum(i for _, _, i in curve)), "wall_s": wall,
             "dofs": problem.V.dofmap.index_map.size_global,
             "curve": [[t, q] for t, q, _ in curve]}
-    results["cases"].append(case)
     log(f"phi = {phi}: q/c = {q_last / args.cohesion:.3f} against Prandtl {prandtl_nc(phi):.3f} "
         f"({100 * case['error']:+.1f} %), plateau spread {100 * plateau:.2f} %, {wall:.1f} s")
+    return case
+
+
+# ---- solve ----------------------------------------------------------------------------
+results["cases"] = [collapse(phi) for phi in frictions]
 
 # ---- plots and checks -----------------------------------------------------------------
 if comm.rank == 0:

@@ -23,16 +23,21 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import ufl
 from dolfinx import mesh
-from mpi4py import MPI
 
 from coupling.dynamic import DynamicCoupling, DynamicOptions
 from coupling.regions import Box, CouplingRegions
-from dem.bonded import (BondedAssembly, BondedDynamics, find_bonds, hexagonal_lattice,
-                        hexagonal_lattice_micropolar)
+from dem.bonded import (
+    BondedAssembly,
+    BondedDynamics,
+    find_bonds,
+    hexagonal_lattice,
+    hexagonal_lattice_micropolar,
+)
 from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
@@ -165,7 +170,8 @@ for h in args.element_sizes:
                   f"{run['de_substeps_per_fe_step']:.0f} DE sub-steps/step, {elapsed:.1f} s", flush=True)
 
 results = {"inputs": vars(args) | {"out": str(args.out), "short": SHORT, "ranks": comm.size},
-           "p_wave_speed": c_p, "bar_wave_speed": c_bar, "material": constants | {"rho": rho_c, "j": r**2 / 2},
+           "p_wave_speed": c_p, "bar_wave_speed": c_bar,
+           "material": constants | {"rho": rho_c, "j": r**2 / 2},
            "t_end": t_end, "runs": runs}
 if comm.rank == 0:
     import matplotlib.pyplot as plt

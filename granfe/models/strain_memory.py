@@ -50,6 +50,8 @@ class StrainMemoryMaterial:
 
 
 class StrainMemory(ContinuumModel):
+    """Secant-softened classical elasticity remembering its largest strain (field u)."""
+
     name = "strain_memory"
     linear = False
     material_type = StrainMemoryMaterial

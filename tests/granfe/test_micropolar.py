@@ -1,13 +1,13 @@
 """2D/3D micropolar elasticity: manufactured solutions, classical limit, patch test, bad input."""
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
 import ufl
 from dolfinx import fem, mesh
 from dolfinx.fem.petsc import LinearProblem
-from mpi4py import MPI
 
 from granfe.manufactured import everywhere, rates
 from granfe.materials import MicropolarMaterial
@@ -30,7 +30,7 @@ EXPECTED_RATES = {  # (u_L2, u_H1, phi_L2, phi_H1)
 def test_manufactured_2d_rates(degree):
     meshes = [mesh.create_unit_square(MPI.COMM_WORLD, n, n) for n in (4, 8, 16)]
     r, _ = rates(meshes, degree)
-    for key, expected in zip(("u_L2", "u_H1", "phi_L2", "phi_H1"), EXPECTED_RATES[degree]):
+    for key, expected in zip(("u_L2", "u_H1", "phi_L2", "phi_H1"), EXPECTED_RATES[degree], strict=False):
         assert r[key] > expected - 0.15, (key, r[key], expected)
 
 

@@ -5,11 +5,11 @@ import subprocess
 import sys
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
-from dolfinx import fem, mesh
-from mpi4py import MPI
+from dolfinx import mesh
 
 from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial

@@ -1,11 +1,11 @@
 """Serial and distributed solves agree to round-off (run under mpiexec -n 2 by `make test`)."""
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
 from dolfinx import fem, mesh
-from mpi4py import MPI
 
 from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial

@@ -4,16 +4,19 @@ the flow rule's dilatancy, the consistent tangent (Taylor test), validation."""
 import math
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
 import ufl
 from dolfinx import fem, mesh
-from mpi4py import MPI
 
 from granfe.materials import MicropolarMaterial
-from granfe.models.drucker_prager import (DruckerPragerMaterial, MicropolarDruckerPrager,
-                                          drucker_prager_constants)
+from granfe.models.drucker_prager import (
+    DruckerPragerMaterial,
+    MicropolarDruckerPrager,
+    drucker_prager_constants,
+)
 from granfe.probe import probe
 from granfe.problem import ContinuumProblem
 

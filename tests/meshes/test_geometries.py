@@ -1,12 +1,12 @@
 """gmsh geometries: named physical groups, refinement toward the DE window, penetrator surfaces."""
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
 
 from meshes import penetration, plate_hole
 
