@@ -108,7 +108,8 @@ class BondedAssembly:
         if self.x.ndim != 2 or self.x.shape[1] != 3:
             raise ValueError(f"x must have shape (n, 3), got {self.x.shape}")
         if not np.all(np.isfinite(self.x)):
-            raise ValueError(f"x has non-finite entries at particles {np.flatnonzero(~np.isfinite(self.x).all(1))[:5].tolist()}")
+            bad = np.flatnonzero(~np.isfinite(self.x).all(1))[:5].tolist()
+            raise ValueError(f"x has non-finite entries at particles {bad}")
         if np.any(self.radius <= 0):
             raise ValueError(f"radius must be > 0; particle {int(np.argmin(self.radius))} has "
                              f"{self.radius.min()!r}")

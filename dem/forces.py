@@ -42,8 +42,7 @@ from numba import get_num_threads, njit, prange
 
 from dem.contact import P_LAW, P_MUR
 from dem.contact.hertz_mindlin import hertz_mindlin_force
-from dem.contact.kinematics import (pair_kinematics, periodic_pair_kinematics, project_history,
-                                    wall_kinematics)
+from dem.contact.kinematics import pair_kinematics, periodic_pair_kinematics, project_history, wall_kinematics
 from dem.contact.linear import linear_force
 
 NOUT = 23

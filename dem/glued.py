@@ -141,7 +141,7 @@ class GluedString:
         return K
 
     def axial_predictor(self, force: float, clamp: str = "right") -> np.ndarray:
-        """q (3 n,) of the string under an end axial force [N] (> 0 compresses), other end fixed.
+        """Q (3 n,) of the string under an end axial force [N] (> 0 compresses), other end fixed.
 
         Every contact carries the same force, so ``delta_n = (F / k_hertz)^(2/3)`` each;
         the exact axial solution and the Newton start for any later load.

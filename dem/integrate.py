@@ -17,9 +17,9 @@ from numba import get_num_threads, njit, prange
 
 from dem.contact import ContactMaterial, pair_table
 from dem.errors import BlowUpError, DomainError, OverlapError
-from dem.forces import (NO_CELL, NOUT, pair_forces, pair_layout, refresh_live, spread,
-                         wall_forces)
+from dem.forces import NO_CELL, NOUT, pair_forces, pair_layout, refresh_live, spread, wall_forces
 from dem.neighbours import NeighbourList
+from dem.prescribed import _prescribe
 from dem.state import FREE, GHOST
 from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
 from dem.walls import WallSet
@@ -324,8 +324,23 @@ _STATE_KEYS = ("x", "v", "omega", "radius", "mass", "inertia", "material", "kind
                "torque")
 
 
+def _fit(key, a, shape):
+    """A (array-like) checked to have ``shape`` (None: empty) for the state entry ``key``."""
+    a = np.asarray(a)
+    if (a.size != 0) if shape is None else (a.shape != tuple(shape)):
+        raise ValueError(f"state {key!r} has shape {a.shape}, this Simulation needs "
+                         f"{'an empty array' if shape is None else tuple(shape)}")
+    return a
+
+
+def _section(d, prefix, exclude=()):
+    """The entries of d under ``prefix`` (prefix stripped), but the ``exclude`` names."""
+    n = len(prefix)
+    return {k[n:]: v for k, v in d.items() if k.startswith(prefix) and k[n:] not in exclude}
+
+
 def _trapezoid(prev, now, disp) -> float:
-    """sum (prev + now)/2 . disp over rows [J]."""
+    """Sum (prev + now)/2 . disp over rows [J]."""
     return 0.5 * float(((prev + now) * disp).sum())
 
 
@@ -393,7 +408,7 @@ class Simulation:
             # round-off contacts (1e-9 of a radius) are not overlaps
             particles.check_overlaps(allow=allow_overlap, tol=1e-9 * float(particles.radius.max()))
         self.time, self.nsteps = 0.0, 0
-        self._ghosts = np.flatnonzero(particles.kind == GHOST)
+        self._ghosts = self._ghost_index()
         n = particles.n
         self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0,
                          cell=0.0)
@@ -492,6 +507,12 @@ class Simulation:
         self._xh = (x.copy(), cell.h.copy())
         return bf, bf0
 
+    def rebuild_neighbours(self) -> None:
+        """Build the neighbour list now (positions or radii changed from outside by more than
+        the skin allows, e.g. grains grown in place); the contact history is carried."""
+        self.nl.build(self.p.x, self.p.radius, self.walls.point, self.walls.normal, self.cell)
+        self._prune(self.nl)
+
     def _prune(self, nl):
         """Called after every neighbour build, before the force pass: a subclass may drop
         candidates it does not need (`dem.parallel` drops the halo copies' own contacts)."""
@@ -520,7 +541,7 @@ class Simulation:
             (self.walls.point.copy() if len(self.walls) else _EMPTY)
 
     # ---------------------------------------------------------------- stepping
-    def step(self, n: int = 1, hook=None):
+    def step(self, n: int = 1, hook=None, prescribed=None):
         """Advance n steps of dt (velocity Verlet), with blow-up and domain checks.
 
         Between two steps of one call (unless a check falls in between) the second
@@ -529,8 +550,13 @@ class Simulation:
         steps passes ``hook`` rather than calling ``step(1)`` n times: ``hook()`` runs after
         each step's force pass, before its second half-kick (forces new, v still the
         half-step velocity; it may write the rows of particles that are not FREE), and a
-        true return ends the call after that step. Returns the number of steps done."""
+        true return ends the call after that step. ``prescribed``: a
+        `dem.prescribed.Prescribed` whose motions of GHOST rows are written before each
+        step's drift (the same bits as writing them from Python before each of n
+        ``step(1)`` calls; ghosts' rotations are booked as dt omega, so a prescribed omega
+        is constant over the call). Returns the number of steps done."""
         p, dt, cell = self.p, self.dt, self.cell
+        pk = None if prescribed is None else prescribed.pack(int(n), dt, p.kind)
         h = 0.5 * dt
         per, lg, org = (0, _NO_L, _NO_O) if cell is None else \
             (1, cell.velocity_gradient, cell.origin)
@@ -544,7 +570,10 @@ class Simulation:
         gprev = None  # ghost rows of the forces the drift cleared
         for s in range(n):
             if pending is None:
-                gprev = self._ghost_rows() if ghosts else None
+                if pk is not None:
+                    _prescribe(s, *pk, p.x, p.v, p.omega)
+                if ghosts and gprev is None:  # (else the last step's: the kick keeps forces)
+                    gprev = self._ghost_rows()
                 pending = _drift(p.x, p.v, p.omega, *acc, *prm, dt, per, lg, org,
                                  self._x0_tracked(), self._hit)
             wc0, we0, wd0, d2 = pending
@@ -556,15 +585,18 @@ class Simulation:
             e, es = self._evaluate(True, d2 if cell is None else None, s == 0)
             gnow = self._ghost_rows() if ghosts else None
             last = hook is not None and bool(hook())
+            now = self._positions()  # of this force pass (before the next step's motions)
             if last or s == n - 1 or (self.nsteps + 1) % self.check_every == 0:
                 wc1, we1, wd1, wg = _kick(p.v, p.omega, *acc, *prm, self._hit)
                 pending = None
             else:
+                if pk is not None:  # the next step's motions, before its drift (in kd)
+                    _prescribe(s + 1, *pk, p.x, p.v, p.omega)
                 kd(p.x, p.v, p.omega, *acc, *prm, dt, per, lg, org, self._x0_tracked(),
                    self._hit, res)
                 wc1, we1, wd1, wg = res[0], res[1], res[2], res[3]
                 pending = (res[4], res[5], res[6], res[7])
-            self._book(wc0 + wc1, we0 + we1, wd0 + wd1, wg, e, es, gprev, gnow)
+            self._book(wc0 + wc1, we0 + we1, wd0 + wd1, wg, e, es, gprev, gnow, now)
             gprev = gnow
             self.time += dt
             self.nsteps += 1
@@ -590,14 +622,16 @@ class Simulation:
         g, p = self._ghosts, self.p
         return np.hstack([p.force[g], p.torque[g], self._fe[g], self._fd[g], self._td[g]])
 
-    def _book(self, wc, we, wd, wg, e, es, gprev, gnow):
+    def _book(self, wc, we, wd, wg, e, es, gprev, gnow, now):
         """Energy ledger of one step, every term by the trapezoidal rule over the actual
         displacements: free particles (from the drift and the kick), ghosts (their force
         rows ``gprev`` at the drift and ``gnow`` after the force pass) and walls (positions
-        at the two force evaluations). Contact work that is neither conservative normal work
-        nor spring energy is dissipated; the damping part is the work of the dashpots."""
+        ``now`` at this force pass and those at the last). Contact work that is neither
+        conservative normal work nor spring energy is dissipated; the damping part is the
+        work of the dashpots. (A ghost's rotation is dt omega now: a prescribed omega is
+        constant over a `step` call.)"""
         led, p, g = self._led, self.p, self._ghosts
-        (xg0, wp0), (xg1, wp1) = self._at, self._positions()
+        (xg0, wp0), (xg1, wp1) = self._at, now
         self._at = (xg1, wp1)
         wgh = wge = wgd = 0.0  # work of the contacts on the ghosts (all, fe, fd)
         if len(g):
@@ -656,6 +690,134 @@ class Simulation:
         res = np.stack([nl.pi[keep], nl.pj[keep]], axis=1), -out[: len(nl.pi)][keep, :3]
         return res + (b[keep],) if return_branch else res
 
+    # ---------------------------------------------------------------- state
+    def state_dict(self) -> dict:
+        """Everything a run continues from, bit for bit, as a flat dict of copies (numpy
+        arrays and Python scalars; ``np.savez``-ready): particles (``particles.*``: x, v,
+        omega, force, torque, radius, mass, inertia, material, kind, dim), the force
+        parts of the last force pass the next drift books (``integrator.*``), time, step
+        count, dt and gravity, the ledger's sums (``ledger.*``), the walls' state
+        (``walls.*``), the neighbour list with its contact history and build positions
+        (``contacts.*``, `dem.neighbours.NeighbourList.state_dict`) and the periodic cell
+        (``cell.*``) if any. `load_state` restores it into a Simulation built the same way."""
+        d = {f"particles.{k}": v for k, v in self.p.state_dict().items()}
+        d["particles.dim"] = int(self.p.dim)
+        d.update(time=float(self.time), nsteps=int(self.nsteps), dt=float(self.dt),
+                 gravity=self.gravity.copy())
+        (xg, wp) = self._at
+        d.update({"integrator.fe": self._fe.copy(), "integrator.fd": self._fd.copy(),
+                  "integrator.td": self._td.copy(), "integrator.hit": self._hit.copy(),
+                  "integrator.wall_resultants": self._wf.copy(),
+                  "integrator.wall_resultants_prev": self._wf_prev.copy(),
+                  "integrator.at_ghosts": np.array(xg), "integrator.at_walls": np.array(wp),
+                  "integrator.zeroed": bool(self._zeroed)})
+        d.update({f"ledger.{k}": float(v) for k, v in self._led.items()})
+        d.update({"ledger.elastic": float(self._elastic), "ledger.spring": float(self._spring),
+                  "ledger.initial": float(self._e0), "ledger.initial_shadow": float(self._shadow0)})
+        d.update({f"walls.{k}": v for k, v in self.walls.state_dict().items()})
+        d.update({f"contacts.{k}": v for k, v in self.nl.state_dict().items()})
+        if self.cell is not None:
+            d.update({f"cell.{k}": v for k, v in self.cell.state_dict().items()})
+            d.update({"cell.bf": self._bf.copy(), "cell.bf_prev": self._bf_prev.copy(),
+                      "cell.bf_mixed": self._bf_mixed.copy()})
+            if self._xh is not None:
+                d.update({"cell.xh_x": self._xh[0].copy(), "cell.xh_h": self._xh[1].copy()})
+        return d
+
+    def load_state(self, d) -> None:
+        """Restore a `state_dict` (a dict or an ``np.load`` of one) into this Simulation,
+        built the same way (particle count, walls, cell). Raises ValueError naming the key
+        of a missing entry, an unknown one, or one whose shape does not fit."""
+        d = dict(d)
+        want = set(self.state_dict())  # the keys of this configuration (cheap: copies)
+        optional = {"cell.xh_x", "cell.xh_h"}
+        for k in sorted(want - optional):
+            if k not in d:
+                raise ValueError(f"state has no {k!r} (a state_dict of another configuration?)")
+        for k in sorted(d):
+            if k not in want | optional:
+                raise ValueError(f"state key {k!r} is unknown to this Simulation (a state_dict "
+                                 f"of another configuration: cell, walls?)")
+        p = self.p
+        if int(d["particles.dim"]) != p.dim:
+            raise ValueError(f"state 'particles.dim' is {int(d['particles.dim'])}, this "
+                             f"Simulation's particles are {p.dim}D")
+        fixed = {f"particles.{k}": getattr(p, k) for k in _STATE_KEYS}
+        fixed.update({"integrator.fe": self._fe, "integrator.fd": self._fd,
+                      "integrator.td": self._td, "integrator.hit": self._hit,
+                      "integrator.wall_resultants": self._wf,
+                      "integrator.wall_resultants_prev": self._wf_prev,
+                      "gravity": self.gravity})
+        for k, a in fixed.items():
+            _fit(k, d[k], a.shape)
+        self.walls.load_state(_section(d, "walls."))
+        self.nl.load_state(_section(d, "contacts."))
+        for k, a in fixed.items():
+            a[...] = np.asarray(d[k], a.dtype)
+        self.time, self.nsteps, self.dt = float(d["time"]), int(d["nsteps"]), float(d["dt"])
+        ng = len(self._ghost_index())
+        xg = _fit("integrator.at_ghosts", d["integrator.at_ghosts"], (ng, 3) if ng else None)
+        wp = _fit("integrator.at_walls", d["integrator.at_walls"],
+                  (len(self.walls), 3) if len(self.walls) else None)
+        self._at = (np.array(xg, float).reshape(-1, 3), np.array(wp, float).reshape(-1, 3))
+        self._zeroed = bool(d["integrator.zeroed"])
+        for k in self._led:
+            self._led[k] = float(d[f"ledger.{k}"])
+        self._elastic, self._spring = float(d["ledger.elastic"]), float(d["ledger.spring"])
+        self._e0, self._shadow0 = float(d["ledger.initial"]), float(d["ledger.initial_shadow"])
+        if self.cell is not None:
+            self.cell.load_state(_section(d, "cell.", exclude=("bf", "bf_prev", "bf_mixed",
+                                                              "xh_x", "xh_h")))
+            self._bf, self._bf_prev, self._bf_mixed = (
+                np.array(_fit(f"cell.{k}", d[f"cell.{k}"], (3, 3, 3)), float)
+                for k in ("bf", "bf_prev", "bf_mixed"))
+            self._xh = (np.array(d["cell.xh_x"], float), np.array(d["cell.xh_h"], float)) \
+                if "cell.xh_x" in d else None
+        self._ghosts = self._ghost_index()
+        self._lay = (None, None)  # the pair layout is rebuilt from the history restored
+        self._good = None
+        self._check()
+
+    def ledger(self) -> dict:
+        """The ledger's stored terms [J] (what `energy` combines; `state_dict` holds them
+        too): sums over the steps so far of the contact work that was dissipated
+        (``dissipated``; ``friction`` its non-damping part) and of the work of the walls
+        (``walls``), the ghosts (``ghosts``), gravity (``gravity``) and the periodic cell
+        (``cell``) on the particles; the ``elastic`` energy (normal + springs) and the
+        ``spring`` energy of the last force pass; ``initial`` (kinetic + elastic) and
+        ``initial_shadow`` at the start. `shadow_energy` gives the shadow term now."""
+        return dict(self._led, elastic=float(self._elastic), spring=float(self._spring),
+                    initial=float(self._e0), initial_shadow=float(self._shadow0))
+
+    def shadow_energy(self) -> float:
+        """Sum dt^2/(8m) |F + m g|^2 + dt^2/(8I) |T|^2 over FREE particles now [J] (the
+        velocity Verlet term of `energy`)."""
+        return self._shadow()
+
+    def force_parts(self):
+        """(fe, fd, td) (n, 3) [N, N, N m]: the conservative normal and the damping parts of
+        ``p.force`` and the damping part of ``p.torque`` from the last force pass (views;
+        the next drift books their work: a caller that carries forces over writes them)."""
+        return self._fe, self._fd, self._td
+
+    def wall_resultants(self) -> np.ndarray:
+        """(nw, 9) resultants of the particles on each wall at the last force pass [N]:
+        total, conservative normal and damping part (a view; the next step books the walls'
+        work from them)."""
+        return self._wf
+
+    def history_replaced(self) -> None:
+        """Call after writing the contact history (``nl.hist/slip/etan`` and the wall
+        ones) from outside: the stored elastic energy takes the new springs' energy (its
+        normal part depends on the positions only)."""
+        normal = self._elastic - self._spring
+        self._spring = float(self.nl.etan.sum() + self.nl.wetan.sum())
+        self._elastic = normal + self._spring
+
+    def _ghost_index(self):
+        """Rows whose contact work is booked as the ghosts' (a subclass may leave some out)."""
+        return np.flatnonzero(self.p.kind == GHOST)
+
     # ---------------------------------------------------------------- energy ledger
     def kinetic_energy(self) -> np.ndarray:
         """(translational, rotational) kinetic energy of FREE particles [J] (in a periodic
@@ -665,7 +827,7 @@ class Simulation:
                          0.5 * (p.inertia[f] * (p.omega[f] ** 2).sum(1)).sum()])
 
     def _shadow(self) -> float:
-        """sum dt^2/(8m) |F + m g|^2 + dt^2/(8I) |T|^2 over FREE particles [J]: K minus
+        """Sum dt^2/(8m) |F + m g|^2 + dt^2/(8I) |T|^2 over FREE particles [J]: K minus
         this is what velocity Verlet changes by exactly the trapezoidal work."""
         p, f = self.p, self.p.kind == FREE
         ft = p.force[f] + p.mass[f, None] * self.gravity

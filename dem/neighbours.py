@@ -378,6 +378,47 @@ class NeighbourList:
         self._h0 = None
         self._cut = 0.0
 
+    _PAIR = ("pi", "pj", "img", "hist", "slip", "etan")
+    _WALL = ("wi", "ww", "whist", "wslip", "wetan")
+
+    def state_dict(self) -> dict:
+        """Copies of the lists, the contact history, the build positions (``x0``, ``wp0``;
+        ``h0`` and ``cut`` in a periodic cell) and ``builds``: where the next rebuild falls
+        depends on them. Absent entries (before the first build) are left out."""
+        d = {k: getattr(self, k).copy() for k in self._PAIR + self._WALL}
+        d.update(n=int(self.n), skin=float(self.skin), builds=int(self.builds),
+                 cut=float(self._cut))
+        for k in ("x0", "wp0", "h0"):
+            a = getattr(self, f"_{k}")
+            if a is not None:
+                d[k] = a.copy()
+        return d
+
+    def load_state(self, d) -> None:
+        """Restore a `state_dict`; ValueError naming the entry that does not fit (another
+        particle count, or per-contact arrays of different lengths)."""
+        if int(d["n"]) != self.n:
+            raise ValueError(f"state 'contacts.n' is {int(d['n'])} particles, this list {self.n}")
+        for names in (self._PAIR, self._WALL):
+            m = len(np.asarray(d[names[0]]))
+            for k in names:
+                if len(np.asarray(d[k])) != m:
+                    raise ValueError(f"state 'contacts.{k}' has {len(np.asarray(d[k]))} rows, "
+                                     f"'contacts.{names[0]}' {m}")
+        dtype = dict(pi=np.int64, pj=np.int64, wi=np.int64, ww=np.int64, slip=np.int8,
+                     wslip=np.int8)
+        for k in self._PAIR + self._WALL:
+            setattr(self, k, np.array(d[k], dtype.get(k, np.float64)))
+        self.img = self.img.reshape(-1, 3)
+        self.hist, self.whist = self.hist.reshape(-1, 3), self.whist.reshape(-1, 3)
+        self.skin, self.builds, self._cut = float(d["skin"]), int(d["builds"]), float(d["cut"])
+        x0 = d.get("x0")
+        if x0 is not None and np.shape(x0) != (self.n, 3):
+            raise ValueError(f"state 'contacts.x0' has shape {np.shape(x0)}, this list needs "
+                             f"({self.n}, 3)")
+        for k in ("x0", "wp0", "h0"):
+            setattr(self, f"_{k}", None if d.get(k) is None else np.array(d[k], float))
+
     def needs_rebuild(self, x, wall_p, cell=None, disp2=None) -> bool:
         """True once two particles (or a particle and a wall) may have closed the skin.
         In a deforming periodic cell the affine part of the motion is taken out of the

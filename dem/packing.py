@@ -135,7 +135,7 @@ def _draw_radii(rng, r_min, r_max, distribution, budget, dim):
 @numba.njit(cache=True)
 def _rsa(radii, lo, hi, dim, cell, nc, max_tries, seed):
     """Random sequential addition with a linked-cell grid; returns placed centres and count."""
-    np.random.seed(seed)
+    np.random.seed(seed)  # noqa: NPY002 (numba supports only the legacy generator)
     n = radii.size
     x = np.zeros((n, 3))
     head = -np.ones(nc[0] * nc[1] * nc[2], dtype=np.int64)
@@ -146,7 +146,7 @@ def _rsa(radii, lo, hi, dim, cell, nc, max_tries, seed):
         for _ in range(max_tries):
             c = np.zeros(3)
             for a in range(dim):
-                c[a] = lo[a] + r + np.random.random() * (hi[a] - lo[a] - 2.0 * r)
+                c[a] = lo[a] + r + np.random.random() * (hi[a] - lo[a] - 2.0 * r)  # noqa: NPY002
             ic = np.zeros(3, dtype=np.int64)
             for a in range(3):
                 ic[a] = min(max(int((c[a] - lo[a]) / cell), 0), nc[a] - 1)
@@ -253,8 +253,9 @@ def push_apart(x, r, movable, tolerance: float, iterations: int):
 def remove_overlaps(particles, tolerance: float | None = None,
                     iterations: int = 1000) -> tuple[int, float]:
     """Move the FREE ``particles`` (in place) until no pair overlaps by more than
-    ``tolerance`` [m] (default 1e-10 of the largest radius), GHOST and FIXED ones held (:func:`push_apart`); for a packing that
-    `dem.Simulation` refuses with an `OverlapError`. Returns (iterations, largest overlap
+    ``tolerance`` [m] (default 1e-10 of the largest radius), GHOST and FIXED ones held
+    (:func:`push_apart`); for a packing that `dem.Simulation` refuses with an `OverlapError`.
+    Returns (iterations, largest overlap
     left [m]); raises `OverlapError` if ``iterations`` were not enough."""
     from dem.errors import OverlapError
     from dem.state import FREE

@@ -249,8 +249,9 @@ class _LocalSimulation(Simulation):
     def __init__(self, particles, halo, *args, **kwargs):
         self.halo = halo
         super().__init__(particles, *args, check_every=1 << 62, **kwargs)
-        self._ghosts = np.flatnonzero((particles.kind == GHOST) & ~halo)
-        self._at = self._positions()
+
+    def _ghost_index(self):
+        return np.flatnonzero((self.p.kind == GHOST) & ~self.halo)
 
     def _check(self):
         pass
@@ -375,7 +376,8 @@ class DistributedSimulation:
         rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius[oi], p.mass[oi], p.inertia[oi]
         rows[:, MAT], rows[:, KIND] = p.material[oi], p.kind[oi]
         rows[:, F], rows[:, T] = p.force[oi], p.torque[oi]
-        rows[:, FE], rows[:, FD], rows[:, TD] = s._fe[oi], s._fd[oi], s._td[oi]
+        fe, fd, td = s.force_parts()
+        rows[:, FE], rows[:, FD], rows[:, TD] = fe[oi], fd[oi], td[oi]
         nl = s.nl
 
         def entries(i, j, hist, slip, etan):
@@ -442,7 +444,7 @@ class DistributedSimulation:
             has = me if self.local is not None else comm.size
             first = comm.allreduce(has, op=_mpi().MIN) if comm.size > 1 else has
             if self.local is not None:
-                self.local._wf[:] = wf if me == first else 0.0
+                self.local.wall_resultants()[:] = wf if me == first else 0.0
         self._unbooked0 = self._unbooked_spring()
         self._relisted = False  # the new local run built its lists now
         self.decompositions += 1
@@ -450,17 +452,15 @@ class DistributedSimulation:
     def _rebuild_lists(self):
         """The local neighbour list built now, as on every other rank (were each rank to
         rebuild when its own skin runs out, the others would wait for it in turn)."""
-        s = self.local
-        if s is not None:
-            s.nl.build(s.p.x, s.p.radius, s.walls.point, s.walls.normal)
-            s._prune(s.nl)
+        if self.local is not None:
+            self.local.rebuild_neighbours()
 
     def _wall_share(self):
         """The wall resultants (nw, 9) of the last force pass (sum of the ranks' shares):
         the next runs' trapezoidal wall work starts from them, all on the lowest rank that
         holds particles (any split adds up to the same resultants)."""
         nw = len(self.walls)
-        wf = np.zeros((nw, 9)) if self.local is None else self.local._wf.copy()
+        wf = np.zeros((nw, 9)) if self.local is None else self.local.wall_resultants().copy()
         return self.comm.allreduce(wf) if self.comm.size > 1 and nw else wf
 
     def _halo_sends(self, x):
@@ -529,17 +529,7 @@ class DistributedSimulation:
 
         send, scount = with_heads(where[self._send_own], scount)
         recv, rcount = with_heads(where[len(own):], rcount)
-        self._plan = (send, recv, _spec(np.zeros((len(send), 9)), scount),
-                      _spec(np.empty((len(recv), 9)), rcount), scount, rcount)
-        self._heads, self._sheads = np.flatnonzero(recv < 0), np.flatnonzero(send < 0)
-        # the buffer row each local row sent is predicted into, and the rows of a particle
-        # sent to more than one rank: copies of its first (dst, src)
-        sent = np.flatnonzero(send >= 0)
-        local, first = np.unique(send[sent], return_index=True)
-        self._slot = np.full(len(rows), -1, np.int64)
-        self._slot[local] = sent[first]
-        src = self._slot[send[sent]]
-        self._dups = (sent[src != sent], src[src != sent])
+        self._set_plan(send, recv, scount, rcount, len(rows))
         self.gid, self.owned = rows[:, GID].astype(np.int64), ~is_halo
         self._xref = rows[:, X].copy()
         if len(rows) == 0:
@@ -549,6 +539,17 @@ class DistributedSimulation:
         kind[is_halo & (kind == FREE)] = GHOST
         p = Particles(rows[:, X], rows[:, V], rows[:, W], rows[:, RAD], rows[:, MASS],
                       rows[:, INER], rows[:, MAT].astype(np.int32), kind, self.dim)
+        sim = self._local_run(p, is_halo)
+        if carried:  # the constructor's force pass started from no history: replace it
+            p.force[:], p.torque[:] = rows[:, F], rows[:, T]
+            fe, fd, td = sim.force_parts()
+            fe[:], fd[:], td[:] = rows[:, FE], rows[:, FD], rows[:, TD]
+            self._install_history(sim.nl, pairs, wall)
+            sim.history_replaced()
+
+    def _local_run(self, p, is_halo):
+        """A `_LocalSimulation` of p (halo copies ``is_halo``) with the walls as they are,
+        installed as ``self.local``."""
         w = self.walls
         specs = [PlaneWall(tuple(w.point[k]), tuple(w.normal[k]), tuple(w.velocity[k]),
                            int(w.material[k])) for k in range(len(w))]
@@ -558,13 +559,22 @@ class DistributedSimulation:
         for a in ("point", "normal", "velocity", "force"):
             getattr(sim.walls, a)[:] = getattr(w, a)
         self.walls, self.local = sim.walls, sim
-        if carried:  # the constructor's force pass started from no history: replace it
-            p.force[:], p.torque[:] = rows[:, F], rows[:, T]
-            sim._fe[:], sim._fd[:], sim._td[:] = rows[:, FE], rows[:, FD], rows[:, TD]
-            self._install_history(sim.nl, pairs, wall)
-            normal = sim._elastic - sim._spring  # a function of the positions only
-            sim._spring = float(sim.nl.etan.sum() + sim.nl.wetan.sum())
-            sim._elastic = normal + sim._spring
+        return sim
+
+    def _set_plan(self, send, recv, scount, rcount, n):
+        """The halo exchange's plan: local rows sent (send) and received into (recv), by
+        rank (-1: a header row), rows per rank (scount, rcount), n local rows."""
+        self._plan = (send, recv, _spec(np.zeros((len(send), 9)), scount),
+                      _spec(np.empty((len(recv), 9)), rcount), scount, rcount)
+        self._heads, self._sheads = np.flatnonzero(recv < 0), np.flatnonzero(send < 0)
+        # the buffer row each local row sent is predicted into, and the rows of a particle
+        # sent to more than one rank: copies of its first (dst, src)
+        sent = np.flatnonzero(send >= 0)
+        local, first = np.unique(send[sent], return_index=True)
+        self._slot = np.full(n, -1, np.int64)
+        self._slot[local] = sent[first]
+        src = self._slot[send[sent]]
+        self._dups = (sent[src != sent], src[src != sent])
 
     def _install_history(self, nl, pairs, wall):
         """Contact history rows keyed by global ids into the neighbour list (pairs not
@@ -674,6 +684,77 @@ class DistributedSimulation:
             self._relisted = True
         return False
 
+    # ---------------------------------------------------------------- state (collective)
+    def state_dict(self) -> dict:
+        """This rank's part of the run's state, flat and ``np.savez``-ready (one file per
+        rank): its local run's `Simulation.state_dict` (``local.*``, absent on a rank that
+        holds no particle), the global ids and owned mask of its rows, the halo exchange's
+        plan (``plan.*``), the positions the halos were made at, the ledger's banked sums
+        (``bank.*``), the walls, time and counters. `load_state` restores it into a
+        DistributedSimulation constructed the same way on as many ranks; the run then
+        continues as this one would, bit for bit."""
+        send, recv, _, _, scount, rcount = self._plan
+        d = dict(ranks=int(self.comm.size), rank=int(self.comm.rank), ngid=int(self.ngid),
+                 time=float(self.time), nsteps=int(self.nsteps), dt=float(self.dt),
+                 decompositions=int(self.decompositions), migrated=int(self.migrated),
+                 initial=float(self._e0), initial_shadow=float(self._shadow0),
+                 unbooked0=float(self._unbooked0), relisted=bool(self._relisted),
+                 gid=self.gid.copy(), owned=self.owned.copy(), xref=self._xref.copy(),
+                 has_local=self.local is not None)
+        d.update({"plan.send": send.copy(), "plan.recv": recv.copy(),
+                  "plan.scount": scount.copy(), "plan.rcount": rcount.copy(),
+                  "plan.send_dest": self._send_dest.copy()})
+        d.update({f"bank.{k}": float(v) for k, v in self._bank.items()})
+        d.update({f"walls.{k}": v for k, v in self.walls.state_dict().items()})
+        if self.local is not None:
+            d.update({f"local.{k}": v for k, v in self.local.state_dict().items()})
+        return d
+
+    def load_state(self, d) -> None:
+        """Restore this rank's `state_dict` (collective). Raises ValueError on every rank,
+        naming the key, if a rank's state does not fit (another rank count, particle count
+        or configuration)."""
+        d, err = dict(d), None
+        try:
+            for key, have in (("ranks", self.comm.size), ("rank", self.comm.rank),
+                              ("ngid", self.ngid)):
+                if key not in d:
+                    raise ValueError(f"state has no {key!r}")
+                if int(d[key]) != have:
+                    raise ValueError(f"state {key!r} is {int(d[key])}, this run has {have}")
+            if bool(d["has_local"]):
+                q = {k[16:]: v for k, v in d.items() if k.startswith("local.particles.")}
+                p = Particles(q["x"], q["v"], q["omega"], q["radius"], q["mass"], q["inertia"],
+                              q["material"], q["kind"], self.dim)
+                halo = ~np.asarray(d["owned"], bool)
+                if halo.shape != (p.n,):
+                    raise ValueError(f"state 'owned' has shape {halo.shape}, 'local.particles.x'"
+                                     f" {p.n} rows")
+                try:
+                    self._local_run(p, halo).load_state(
+                        {k[6:]: v for k, v in d.items() if k.startswith("local.")})
+                except ValueError as e:
+                    raise ValueError(f"local run: {e}") from None
+            else:
+                self.local = None
+                self.walls.load_state({k[6:]: v for k, v in d.items() if k.startswith("walls.")})
+        except (KeyError, ValueError) as e:
+            err = e if isinstance(e, ValueError) else ValueError(f"state has no {e.args[0]!r}")
+        _agree(self.comm, err)
+        self.gid, self.owned = np.array(d["gid"], np.int64), np.array(d["owned"], bool)
+        self._xref = np.array(d["xref"], float).reshape(-1, 3)
+        self._send_dest = np.array(d["plan.send_dest"], np.int64)
+        self._set_plan(np.array(d["plan.send"], np.int64), np.array(d["plan.recv"], np.int64),
+                       np.array(d["plan.scount"], np.int64), np.array(d["plan.rcount"], np.int64),
+                       len(self.gid))
+        self.time, self.nsteps, self.dt = float(d["time"]), int(d["nsteps"]), float(d["dt"])
+        self.decompositions, self.migrated = int(d["decompositions"]), int(d["migrated"])
+        self._e0, self._shadow0 = float(d["initial"]), float(d["initial_shadow"])
+        self._unbooked0, self._relisted = float(d["unbooked0"]), bool(d["relisted"])
+        self._bank = {k: float(d[f"bank.{k}"]) for k in _SUMS}
+        self._good = None
+        self._check()
+
     # ---------------------------------------------------------------- results (collective)
     def kinetic_energy(self) -> np.ndarray:
         """(translational, rotational) kinetic energy of all FREE particles [J]."""
@@ -711,8 +792,9 @@ class DistributedSimulation:
         out, s = dict(self._bank), self.local
         if s is not None:
             c = self._unbooked_spring() - self._unbooked0
+            led = s.ledger()
             for k in _SUMS:
-                out[k] += s._led[k] + (c if k in ("dissipated", "friction") else 0.0)
+                out[k] += led[k] + (c if k in ("dissipated", "friction") else 0.0)
         return out
 
     def _totals(self, elastic: bool = True) -> dict:
@@ -722,8 +804,8 @@ class DistributedSimulation:
         kt = kr = el = sh = 0.0
         if s is not None:
             kt, kr = s.kinetic_energy()
-            sh = s._shadow()
-            el = s._elastic - self._unbooked_elastic() if elastic else 0.0
+            sh = s.shadow_energy()
+            el = s.ledger()["elastic"] - self._unbooked_elastic() if elastic else 0.0
         v = np.array([kt, kr, el, sh] + [sums[k] for k in _SUMS])
         if self.comm.size > 1:
             v = self.comm.allreduce(v)

@@ -73,8 +73,25 @@ class PeriodicCell:
         """F = h h0^-1 (3, 3) since the start."""
         return self.h @ np.linalg.inv(self.h0)
 
+    def state_dict(self) -> dict:
+        """Copies of h, h0, velocity_gradient and origin (3, 3) / (3,) and ``dim``."""
+        return dict(h=self.h.copy(), h0=self.h0.copy(),
+                    velocity_gradient=self.velocity_gradient.copy(), origin=self.origin.copy(),
+                    dim=int(self.dim))
+
+    def load_state(self, d) -> None:
+        """Restore a `state_dict`; ValueError naming an entry that does not fit."""
+        if int(d["dim"]) != self.dim:
+            raise ValueError(f"state 'cell.dim' is {int(d['dim'])}, this cell {self.dim}")
+        for k, shape in (("h", (3, 3)), ("h0", (3, 3)), ("velocity_gradient", (3, 3)),
+                         ("origin", (3,))):
+            a = np.array(d[k], float)
+            if a.shape != shape:
+                raise ValueError(f"state 'cell.{k}' has shape {a.shape}, not {shape}")
+            setattr(self, k, a)
+
     def advance(self, dt: float):
-        """h <- (I + dt L) h: the same affine map the drift applies to the particles."""
+        """H <- (I + dt L) h: the same affine map the drift applies to the particles."""
         self.h = self.h + dt * (self.velocity_gradient @ self.h)
 
     def wrap(self, x):

@@ -50,7 +50,7 @@ class EmptyRVEError(ValueError):
 
 def _as(name, a, shape, dtype=np.float64):
     a = np.asarray(a, dtype=dtype)
-    if a.ndim != len(shape) or any(s is not None and s != t for s, t in zip(shape, a.shape)):
+    if a.ndim != len(shape) or any(s is not None and s != t for s, t in zip(shape, a.shape, strict=False)):
         want = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name} must have shape {want}, got {a.shape}")
     if dtype is np.float64 and not np.all(np.isfinite(a)):
@@ -211,7 +211,7 @@ class MicromorphicStress:
 
 
 def mean_stress(t) -> float:
-    """p = tr(t)/3 [Pa] (tension positive)."""
+    """P = tr(t)/3 [Pa] (tension positive)."""
     return float(np.trace(t) / 3.0)
 
 
@@ -399,7 +399,7 @@ class StressRecorder:
                   "sigma_no_couples": r"$\sigma$ without $\rho\omega$, $\rho\ell$",
                   "sigma_G": r"$\sigma^G$ (granular)"}
         fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        for ax, kind in zip(axes, ("p", "tau")):
+        for ax, kind in zip(axes, ("p", "tau"), strict=False):
             for key, lab in labels.items():
                 ax.plot(t, [r[f"{kind}_{key}"] for r in self.rows], label=lab)
             sign = -1.0 if kind == "p" else 1.0  # the paper plots -p of the couple stress

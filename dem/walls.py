@@ -56,6 +56,21 @@ class WallSet:
     def __len__(self):
         return self.point.shape[0]
 
+    def state_dict(self) -> dict:
+        """Copies of point, normal, velocity, force and material."""
+        return {k: getattr(self, k).copy() for k in ("point", "normal", "velocity", "force",
+                                                     "material")}
+
+    def load_state(self, d) -> None:
+        """Restore a `state_dict` in place; ValueError naming an entry of another shape."""
+        for k in ("point", "normal", "velocity", "force", "material"):
+            a, new = getattr(self, k), np.asarray(d[k])
+            if new.shape != a.shape:
+                raise ValueError(f"state 'walls.{k}' has shape {new.shape}, these walls "
+                                 f"{a.shape}")
+        for k in ("point", "normal", "velocity", "force", "material"):
+            getattr(self, k)[...] = np.asarray(d[k])
+
     def advance(self, dt: float):
         self.point += dt * self.velocity
 

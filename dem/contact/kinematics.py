@@ -113,10 +113,11 @@ def coulomb_tangential(kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt
     limited by mus |fn|; once sliding (slip = 1) by mud |fn| until the trial force falls
     below it. When the limit is hit the force becomes mud |fn| along the trial force and
     the spring is reset to carry it alone (LAMMPS: the *total* tangential force is capped;
-    LIGGGHTS caps the spring only, so its dashpot can exceed the Coulomb limit). Returns (ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip,
-    e_pre, e_t, p_fric): total force on j and its damping part [N] (the dashpot while
-    sticking, zero while sliding: the Coulomb force is then friction), new spring, flag, spring energy before the
-    increment (at the current kt) and after [J], sliding power ft . vt [W]."""
+    LIGGGHTS caps the spring only, so its dashpot can exceed the Coulomb limit). Returns
+    (ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric): total force on j
+    and its damping part [N] (the dashpot while sticking, zero while sliding: the Coulomb
+    force is then friction), new spring, flag, spring energy before the increment (at the
+    current kt) and after [J], sliding power ft . vt [W]."""
     e_pre = 0.5 * kt * (sx * sx + sy * sy + sz * sz)
     sx += vtx * dt
     sy += vty * dt

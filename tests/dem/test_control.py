@@ -1,6 +1,5 @@
 """Dynamic relaxation and servo-controlled walls reach static equilibrium with the right forces."""
 
-import numpy as np
 import pytest
 
 from dem import ContactMaterial, Particles, Simulation, box_walls

@@ -193,7 +193,7 @@ def test_periodic_pairs_equal_brute_force_images():
     r = rng.uniform(0.5e-3, 1.2e-3, n)
     skin = 2e-4
     pi, pj, img = build_periodic_pairs(x, r, skin, h)
-    got = {(int(a), int(b)) for a, b in zip(pi, pj)}
+    got = {(int(a), int(b)) for a, b in zip(pi, pj, strict=False)}
     want = set()
     shifts = np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3)
     for i in range(n):

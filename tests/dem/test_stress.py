@@ -14,8 +14,16 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from dem.stress import (AveragingDomain, EmptyRVEError, contact_points, couple_measures,
-                        love_weber_stress, mean_stress, micromorphic_stress, octahedral_shear)
+from dem.stress import (
+    AveragingDomain,
+    EmptyRVEError,
+    contact_points,
+    couple_measures,
+    love_weber_stress,
+    mean_stress,
+    micromorphic_stress,
+    octahedral_shear,
+)
 
 A = 2e-3                      # fcc cell edge [m]
 D = A / np.sqrt(2)            # bond length = 2 r [m]
@@ -132,7 +140,7 @@ def test_linear_gradient_couple_stress_and_split_independence(lattice):
     for nd in (1, 2, 4):
         dom = _domain(4 // nd, (nd,) * 3)
         c = dom.centre
-        f = _forces(x, pairs, lambda p: EPS0 + np.einsum("klp,cp->ckl", G, p - c))
+        f = _forces(x, pairs, lambda p, c=c: EPS0 + np.einsum("klp,cp->ckl", G, p - c))
         out[nd] = res = micromorphic_stress(dom, x, r, pairs, f)
         J = np.eye(3) * L**2 * (nd**2 - 1) / (12 * nd**2)
         expect_m = np.einsum("klp,pm->klm", Gamma, J)
@@ -231,7 +239,7 @@ def test_recorder_series(lattice, tmp_path):
     for step in range(7):
         t = step * 1e-3
         load = 1 + step / 6
-        f = _forces(x, pairs, lambda p: np.broadcast_to(load * EPS0, (len(p), 3, 3)))
+        f = _forces(x, pairs, lambda p, load=load: np.broadcast_to(load * EPS0, (len(p), 3, 3)))
         v = t * (x - dom.centre) @ W.T   # angular acceleration W, so (v - v_prev)/dt = W xi
         rec(step, t, x, r, pairs, f, mass, v=v)
     paths = rec.write()
@@ -304,6 +312,6 @@ def test_stress_from_saved_frames_equals_live(tmp_path):
     saved = StressRecorder(domain, tmp_path / "saved")
     record_frames(saved, paths)
     assert len(saved.rows) == len(live.rows) == 3
-    for a, b in zip(live.rows, saved.rows):
+    for a, b in zip(live.rows, saved.rows, strict=False):
         for key in a:
             assert np.allclose(a[key], b[key], rtol=1e-12, atol=0), key
