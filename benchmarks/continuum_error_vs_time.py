@@ -18,12 +18,12 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import ufl
 from dolfinx import fem, mesh
 from dolfinx.fem.petsc import assemble_matrix, assemble_vector
-from mpi4py import MPI
 
 from granfe.manufactured import errors, manufactured_problem
 
@@ -105,7 +105,7 @@ for gdim, series in SERIES.items():
 
 def observed_rates(gdim, degree, solver, key):
     s = [p for p in points if p["dim"] == gdim and p["degree"] == list(degree) and p["solver"] == solver]
-    return [float(np.log2(a[key] / b[key]) / np.log2(b["n"] / a["n"])) for a, b in zip(s, s[1:])]
+    return [float(np.log2(a[key] / b[key]) / np.log2(b["n"] / a["n"])) for a, b in zip(s, s[1:], strict=False)]
 
 
 if comm.rank == 0:
@@ -120,7 +120,7 @@ if comm.rank == 0:
                        "(linear problem: 1 step); times are max over ranks"}
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
-    for ax, gdim in zip(axes, sorted(SERIES)):
+    for ax, gdim in zip(axes, sorted(SERIES), strict=False):
         for solver in SERIES[gdim]["solvers"]:
             for degree in PAIRS:
                 s = [p for p in points if p["dim"] == gdim and p["degree"] == list(degree)

@@ -38,9 +38,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 
 from coupling.penetration import CoupledPenetration, DemPenetration, PenetrationParameters
 
@@ -126,7 +126,8 @@ def scaling_line() -> list[dict]:
                                           for part in runs[0]["split_s"][0]},
                        "setup_s": [r["setup_s"] for r in runs], "runs": runs})
         split = ", ".join(f"{k} {v:.4f}" for k, v in points[-1]["split_s_median"].items())
-        log(f"3D, {ranks} rank(s) x {threads} thread(s): {runs[0]['grains']} grains, {runs[0]['dofs']} dofs, per FE step "
+        log(f"3D, {ranks} rank(s) x {threads} thread(s): {runs[0]['grains']} grains, {runs[0]['dofs']} dofs, "
+            "per FE step "
             f"min {step.min():.3f} s, median {np.median(step):.3f} s (DEM {np.median(dem):.3f} s; "
             f"medians: {split})")
     return points

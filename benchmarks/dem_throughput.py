@@ -134,7 +134,7 @@ def worker(n, repeats, count):
     contacts = {}
     if count:
         sim = settle_sim(P, n)
-        for k in range(NSTEPS // 100):
+        for _k in range(NSTEPS // 100):
             sim.step(100)
             contacts[sim.nsteps] = len(sim.contacts()[0])
     import numba

@@ -83,7 +83,7 @@ def run_case(name: str, seed: int) -> dict:
 def binned(result) -> np.ndarray:
     d, q = np.asarray(result["depth"]), np.asarray(result["q_c"])
     out = np.full(len(BINS) - 1, np.nan)
-    for k, (a, b) in enumerate(zip(BINS[:-1], BINS[1:])):
+    for k, (a, b) in enumerate(zip(BINS[:-1], BINS[1:], strict=False)):
         inside = (d >= a) & (d < b)
         if inside.any():
             out[k] = q[inside].mean()
@@ -142,7 +142,7 @@ def main():
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, len(SEEDS), figsize=(5 * len(SEEDS), 6), squeeze=False, sharey=True)
     mid = 0.5 * (BINS[:-1] + BINS[1:])
-    for ax, seed in zip(axes[0], SEEDS):
+    for ax, seed in zip(axes[0], SEEDS, strict=False):
         for r in (r for r in results if r["seed"] == seed):
             q = np.convolve(r["q_c"], np.ones(9) / 9, mode="same")
             line, = ax.plot(q / 1e3, np.asarray(r["depth"]) * 1e3, lw=0.7, alpha=0.6)

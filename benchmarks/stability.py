@@ -23,9 +23,9 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 
 from coupling.penetration import PenetrationParameters
 from coupling.penetration_run import run_penetration

@@ -32,6 +32,8 @@ __all__ = ["DynamicOptions", "DynamicCoupling"]
 
 @dataclass(frozen=True)
 class DynamicOptions:
+    """Interface iteration of a dynamic coupled step: tolerance, iterations, Aitken."""
+
     tol: float = 1e-8
     max_iterations: int = 50
     aitken: bool = True
@@ -85,7 +87,7 @@ class DynamicCoupling:
         st.predict()
         current = self._prescribed_from_w()
         aitken = Aitken(iface, 1.0, opts.aitken)
-        for it in range(1, opts.max_iterations + 1):
+        for it in range(1, opts.max_iterations + 1):  # noqa: B007 (the count is returned)
             t0 = time.perf_counter()
             pd.restore(saved)
             g1 = pd.pack_ghosts(*iface.ghost_motion())

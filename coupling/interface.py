@@ -8,10 +8,10 @@ import time
 from dataclasses import dataclass
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 from dolfinx import fem
-from mpi4py import MPI
 
 from coupling.locate import owner_ranks, relocate
 from coupling.operators import FieldBasis, NodalProjection
@@ -114,6 +114,11 @@ class CouplingInterface:
         self._ghost_mine = np.flatnonzero(mine[self.ghost_index])  # positions within ghost list
         self._free_mine = self.free_index[mine[self.free_index]]    # particle indices
 
+    @property
+    def free_owned(self) -> np.ndarray:
+        """Indices of the free particles whose centroids lie in this rank's cells."""
+        return self._free_mine
+
     def _ghost_points(self, x: np.ndarray) -> np.ndarray:
         return x[self.ghost_index[self._ghost_mine], : self.gdim]
 
@@ -215,7 +220,7 @@ class CouplingInterface:
         w = self.problem.w
         th = np.reshape(theta, (len(theta), -1))
         return np.concatenate([f.projection.project(q[self._free_mine], w)
-                               for f, q in zip(self.fields, (u[:, : self.gdim], th))])
+                               for f, q in zip(self.fields, (u[:, : self.gdim], th), strict=False)])
 
     def project_displacement(self, u: np.ndarray) -> np.ndarray:
         """The displacement part of :meth:`project` (this rank's prescribed u dofs) alone, for

@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
 
-import numpy as np
-
 import dolfinx.geometry
+import numpy as np
 
 __all__ = ["PointsOutsideMesh", "inside_reference", "locate_owned", "owner_ranks", "pad_points",
            "reference_coordinates", "relocate"]

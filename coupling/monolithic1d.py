@@ -28,9 +28,9 @@ with ``S`` selecting the particle dofs Q from X, ``Fw_DE`` the glued-string inte
 
 from __future__ import annotations
 
-import dolfinx_solver  # noqa: F401
-
 from dataclasses import dataclass
+
+import dolfinx_solver  # noqa: F401
 
 import numpy as np
 import scipy.sparse as sp

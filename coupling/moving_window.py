@@ -65,18 +65,25 @@ import time
 from dataclasses import dataclass
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import ufl
 from dolfinx import fem
-from mpi4py import MPI
 
 from coupling.interface import CouplingInterface
 from coupling.locate import owner_ranks
 from coupling.operators import FieldBasis
-from coupling.penetration import (CoupledPenetration, CouplingUnstable, PenetrationParameters,
-                                  cone_clump, cone_record, penetrator_clump)
+from coupling.penetration import (
+    CoupledPenetration,
+    CouplingUnstable,
+    PenetrationParameters,
+    cone_clump,
+    cone_record,
+    penetrator_clump,
+)
 from coupling.regions import Box, CouplingRegions, Union
+from coupling.substep import GhostMotion, sub_cycle
 from dem import GHOST, Particles, Simulation, build_pairs
 from dem.bonded import hexagonal_lattice
 from dem.neighbours import carry_history
@@ -343,7 +350,7 @@ def refined_depth(prm: PenetrationParameters, mv: MovingWindowParameters) -> flo
 
 # ---- stress of the grains being generated ---------------------------------------------------
 def isotropic_modulus(material, dim: int) -> float:
-    """d sigma_mean / d e [Pa] of the continuum under the isotropic strain ``e I``:
+    """D sigma_mean / d e [Pa] of the continuum under the isotropic strain ``e I``:
     ``dim lam + 2 mu + kappa`` (the micropolar rotation is not strained by it)."""
     return dim * material.lam + 2 * material.mu + material.kappa
 
@@ -794,7 +801,7 @@ class MovingWindowPenetration(CoupledPenetration):
                     trace["cycles"].append({"stress_axis": float(sigma[ax, ax]), "growth": e,
                                             "stress_mean": float(np.trace(sigma)) / p.dim})
                 # grown radii may reach pairs the Verlet skin did not list
-                sim.nl.build(p.x, p.radius, sim.walls.point, sim.walls.normal)
+                sim.rebuild_neighbours()
                 sim.step(n)
         finally:
             p.kind[:] = kind
@@ -812,8 +819,9 @@ class MovingWindowPenetration(CoupledPenetration):
         ``r``: at prescribed dofs it is the second difference of the relaxed projections,
         noise that as a constant load drove a surface node 60 mm within a step.
         Returns the number of released dofs (all ranks). Collective."""
-        from dolfinx.fem.petsc import assemble_vector
         from petsc4py import PETSc
+
+        from dolfinx.fem.petsc import assemble_vector
 
         problem, st, comm = self.problem, self.stepper, self.comm
         before = np.concatenate([f.prescribed for f in old_interface.fields])
@@ -889,18 +897,13 @@ class MovingWindowPenetration(CoupledPenetration):
     def _coupled_step(self, k, g_prev):
         """One FE step of :meth:`CoupledPenetration.run` on the current window."""
         prm, sim, iface, st = self.prm, self.sim, self.interface, self.stepper
-        p, t0, e = sim.p, time.perf_counter(), np.eye(3)[self.axis]
+        p, t0 = sim.p, time.perf_counter()
         g_next = iface.ghost_motion()
         st.predict()
-        for s in range(1, prm.substeps + 1):
-            frac = s / prm.substeps
-            p.x[self.ghost_local, : self.axis + 1] = (self.x_base[self.ghost_local, : self.axis + 1]
-                                                      + (1 - frac) * g_prev[0] + frac * g_next[0])
-            p.v[self.ghost_local, : self.axis + 1] = (g_next[0] - g_prev[0]) / self.dt_fe
-            self.depth += prm.velocity * sim.dt
-            p.x[self.pen_index] = self.pen0 - self.depth * e
-            p.v[self.pen_index] = -prm.velocity * e
-            sim.step(1)
+        ghosts = GhostMotion(self.ghost_local, self.x_base[self.ghost_local], g_prev[0], g_next[0],
+                             self.dt_fe)
+        self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
+                               prm.velocity, self.axis, ghosts)
         n = self.n_grains
         n_u = iface.fields[0].prescribed.size
         old = iface.prescribed_values()

@@ -17,16 +17,15 @@ place; sparsity and symbolic factorisation are rebuilt only if some particle cha
 
 from __future__ import annotations
 
-import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
-
 from dataclasses import dataclass, field
 
-import numpy as np
-import scipy.sparse as sp
+import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
 from petsc4py import PETSc
 
 import dolfinx.fem
 import dolfinx.la
+import numpy as np
+import scipy.sparse as sp
 
 from coupling.locate import PointsOutsideMesh, locate_owned, pad_points, relocate
 

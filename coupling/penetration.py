@@ -62,6 +62,7 @@ import numpy as np
 from coupling.interface import CouplingInterface
 from coupling.penetrators import cone_clump, penetrator_clump, tip_height
 from coupling.regions import Box, CouplingRegions
+from coupling.substep import GhostMotion, sub_cycle
 from dem import GHOST, ContactMaterial, Particles, Simulation
 from dem.bonded import hexagonal_lattice, hexagonal_lattice_micropolar
 from dem.timestep import DEFAULT_SAFETY, rayleigh_dt
@@ -258,58 +259,18 @@ def _gravity(prm):
     return g
 
 
-# ---- exact DEM state (for checkpoints; dem.Simulation has no state_dict yet) --------------------
-_SKIP = {"p", "nl", "materials", "table", "walls", "domain", "state_path", "_good", "_out", "_wd"}
+# ---- the DEM part of a checkpoint -------------------------------------------------------------
+def _dem_state(sim: Simulation) -> dict:
+    """``sim.state_dict()`` under ``dem.`` keys, plus the positions ``p.x`` (the restart's
+    particle-count check reads them)."""
+    return {f"dem.{k}": np.asarray(v) for k, v in sim.state_dict().items()} | {"p.x": sim.p.x.copy()}
 
 
-def _plain_state(obj, prefix: str, skip=()) -> dict:
-    """ndarray, number, dict-of-numbers and tuple-of-numbers attributes of ``obj``."""
-    out = {}
-    for k, v in vars(obj).items():
-        if k in skip or v is None:
-            continue
-        if isinstance(v, np.ndarray):
-            out[f"{prefix}{k}"] = v.copy()
-        elif isinstance(v, (bool, int, float, np.number)):
-            out[f"{prefix}{k}"] = np.asarray(v)
-        elif isinstance(v, tuple) and all(isinstance(a, (int, float)) for a in v):
-            out[f"{prefix}tuple:{k}"] = np.asarray(v, float)
-        elif isinstance(v, dict) and all(isinstance(a, (int, float)) for a in v.values()):
-            for key, a in v.items():
-                out[f"{prefix}dict:{k}:{key}"] = np.asarray(a)
-    return out
-
-
-def _restore_plain(obj, prefix: str, data) -> None:
-    for name in data:
-        if not name.startswith(prefix):
-            continue
-        key, value = name[len(prefix):], data[name]
-        if key.startswith("tuple:"):
-            setattr(obj, key[6:], tuple(float(a) for a in value))
-        elif key.startswith("dict:"):
-            _, attr, k = key.split(":", 2)
-            getattr(obj, attr)[k] = value.item()
-        elif value.ndim == 0 and not isinstance(getattr(obj, key, None), np.ndarray):
-            setattr(obj, key, type(getattr(obj, key))(value.item()) if getattr(obj, key, None) is not None
-                    else value.item())
-        else:
-            setattr(obj, key, np.array(value))
-
-
-def dem_state(sim: Simulation) -> dict:
-    """Everything a `Simulation` step reads: particle arrays, forces of the last step, the
-    neighbour list with its contact history and build positions, time, ledger."""
-    return (_plain_state(sim.p, "p.") | _plain_state(sim.nl, "nl.")
-            | _plain_state(sim, "sim.", _SKIP))
-
-
-def restore_dem_state(sim: Simulation, data) -> None:
-    """Inverse of :func:`dem_state` on a simulation built with the same particle count."""
+def _load_dem_state(sim: Simulation, data) -> None:
+    """Inverse of :func:`_dem_state` on a simulation built with the same particle count."""
     if len(data["p.x"]) != sim.p.n:
         raise ValueError(f"checkpoint holds {len(data['p.x'])} particles, the simulation {sim.p.n}")
-    for obj, prefix in ((sim.p, "p."), (sim.nl, "nl."), (sim, "sim.")):
-        _restore_plain(obj, prefix, data)
+    sim.load_state({k[4:]: v for k, v in data.items() if k.startswith("dem.")})
 
 
 class DemPenetration:
@@ -352,17 +313,13 @@ class DemPenetration:
         prm, sim = self.prm, self.sim
         check_push(prm, sim.dt)
         p = sim.p
-        down = np.eye(3)[VERTICAL[prm.dim]]
         block = prm.substeps * sim.dt
         n_steps = int(np.ceil(prm.depth / prm.velocity / block))
         depth, t = 0.0, 0.0
         for k in range(n_steps):
             t0 = time.perf_counter()
-            for _ in range(prm.substeps):
-                depth += prm.velocity * sim.dt
-                p.x[self.pen_index] = self.pen0 - depth * down
-                p.v[self.pen_index] = -prm.velocity * down
-                sim.step(1)
+            depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), depth, prm.velocity,
+                              VERTICAL[prm.dim])
             t += block
             f = p.force[self.pen_index] - self.clump_internal
             self.history.append(cone_record(prm, f, self.on_cone, depth, k + 1, t,
@@ -567,7 +524,7 @@ class CoupledPenetration:
         iface.set_prescribed(np.concatenate([w.x.array[f.prescribed] for f in iface.fields]))
         self._g_ref = iface.ghost_motion()
         self._q_ref = np.zeros((self.n_grains, 3))
-        self._q_ref[iface._free_mine] = iface.fields[0].free.interpolate(w)
+        self._q_ref[iface.free_owned] = iface.fields[0].free.interpolate(w)
 
     # ---- exchange -----------------------------------------------------------------------
     def _ghost_motion(self):
@@ -576,13 +533,6 @@ class CoupledPenetration:
         if self._g_ref is not None:
             u, theta = u - self._g_ref[0], theta - self._g_ref[1]
         return u, theta
-
-    def _ghost_positions(self, w_start, w_end, frac):
-        u0, _ = w_start
-        u1, _ = w_end
-        out = self.x_ref[self.ghost_local].copy()
-        out[:, : u0.shape[1]] += (1 - frac) * u0 + frac * u1
-        return out
 
     @property
     def n_steps(self) -> int:
@@ -595,8 +545,6 @@ class CoupledPenetration:
         check_push(prm, sim.dt)
         p, dim, ax = sim.p, prm.dim, VERTICAL[prm.dim]
         stop = self.n_steps if steps is None else min(self.n_steps, len(self.history) + steps)
-        down = np.eye(3)[ax]
-        pen_v = -prm.velocity * down
         n_u = iface.fields[0].prescribed.size
         clock = time.perf_counter
         g_current = None   # the ghost motion of the current FE state (from the last step)
@@ -608,14 +556,10 @@ class CoupledPenetration:
             t_ghosts = clock() - t0
             st.predict()
             t_dem = clock()
-            for s in range(1, prm.substeps + 1):
-                frac = s / prm.substeps
-                p.x[self.ghost_local] = self._ghost_positions(g_prev, g_next, frac)
-                p.v[self.ghost_local, :dim] = (g_next[0] - g_prev[0]) / self.dt_fe
-                self.depth += prm.velocity * sim.dt
-                p.x[self.pen_index] = self.pen0 + (-self.depth) * down
-                p.v[self.pen_index] = pen_v
-                sim.step(1)
+            ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0],
+                                 g_next[0], self.dt_fe)
+            self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
+                                   prm.velocity, ax, ghosts)
             t1 = clock()
             t_dem = t1 - t_dem
             u = p.x[: self.n_grains, :dim] - self.x_ref[:, :dim]
@@ -663,48 +607,68 @@ class CoupledPenetration:
         return self.prm.window_depth
 
     # ---- checkpoints --------------------------------------------------------------------
-    def save_checkpoint(self, directory) -> Path:
+    def save_checkpoint(self, directory, meta: dict | None = None) -> Path:
         """Write what :meth:`run` needs to continue exactly (collective): the grains' state
         with contact history, the settled reference, the continuum constants, the FE state
         of the stepper (one file per rank), the ghosts' last motion, depth and history.
-        ``state.json`` is written last: a directory without it is incomplete."""
-        directory = Path(directory)
+        Atomic (:func:`coupling.checkpoints.write_checkpoint`): written beside ``directory``,
+        then renamed into place, the previous one kept as ``<directory>.prev``; ``meta``
+        (e.g. the run's fingerprint) goes into its manifest."""
+        from coupling.checkpoints import write_checkpoint
+
         comm, st = self.comm, self.stepper
-        if comm.rank == 0:
-            directory.mkdir(parents=True, exist_ok=True)
-            (directory / "state.json").unlink(missing_ok=True)
-        comm.barrier()
-        np.savez(directory / f"continuum_rank{comm.rank}_of{comm.size}.npz",
-                 w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
-                 a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem._last_good)
-        if comm.rank == 0:
-            np.savez(directory / "grains.npz", **dem_state(self.sim), x_ref=self.x_ref, pen0=self.pen0,
+        step = len(self.history)
+
+        def files(tmp: Path) -> list[str]:
+            name = f"continuum_rank{comm.rank}_of{comm.size}.npz"
+            np.savez(tmp / name, w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
+                     a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem.last_good)
+            if comm.rank != 0:
+                return [name]
+            np.savez(tmp / "grains.npz", **_dem_state(self.sim), x_ref=self.x_ref, pen0=self.pen0,
                      g_prev_u=self.g_prev[0], g_prev_theta=self.g_prev[1])
-        comm.barrier()
-        if comm.rank == 0:
-            state = {"step": len(self.history), "depth": self.depth, "t": st.t,
+            state = {"step": step, "depth": self.depth, "t": st.t,
                      "ranks": comm.size, "surface": self.surface,
                      "material": asdict(self.material_fe), "packing": self.contact_stats,
                      "history": self.history}
-            (directory / "state.json").write_text(json.dumps(state, indent=1))
-        comm.barrier()
-        return directory
+            (tmp / "state.json").write_text(json.dumps(state, indent=1))
+            return [name, "grains.npz", "state.json"]
+
+        return write_checkpoint(directory, step, comm, files, meta=meta)
 
     def _read_checkpoint(self, directory: Path) -> dict:
-        path = directory / "state.json"
-        if not path.exists():
-            raise FileNotFoundError(f"no complete checkpoint in {directory} (expected {path})")
-        state = json.loads(path.read_text())
-        if state["ranks"] != self.comm.size:
-            raise FileNotFoundError(f"the checkpoint in {directory} was written on {state['ranks']} "
-                                    f"rank(s); restart with mpiexec -n {state['ranks']}")
-        grains = dict(np.load(directory / "grains.npz"))
-        restore_dem_state(self.sim, grains)
+        """The checkpoint in ``directory``, validated against its manifest (every file's
+        sha256); a ``FileNotFoundError`` naming what is wrong otherwise."""
+        from coupling.checkpoints import validate
+
+        comm = self.comm
+        manifest, reason = validate(directory) if comm.rank == 0 else (None, "")
+        manifest, reason = comm.bcast((manifest, reason), root=0)
+        if manifest is None:
+            raise FileNotFoundError(f"no complete checkpoint in {directory} ({reason})")
+        if manifest.get("ranks") != comm.size:
+            ranks = manifest.get("ranks")
+            raise FileNotFoundError(f"the checkpoint in {directory} was written on {ranks} "
+                                    f"rank(s); restart with mpiexec -n {ranks}")
+        try:
+            state = json.loads((directory / "state.json").read_text())
+            grains = dict(np.load(directory / "grains.npz"))
+            fe = dict(np.load(directory / f"continuum_rank{comm.rank}_of{comm.size}.npz"))
+            material = MicropolarMaterial(**state["material"])
+            missing = [k for k in ("t", "depth", "history", "packing", "surface") if k not in state]
+            missing += [k for k in ("x_ref", "pen0", "g_prev_u", "g_prev_theta", "p.x")
+                        if k not in grains]
+            if missing:
+                raise KeyError(", ".join(missing))
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise FileNotFoundError(f"the checkpoint in {directory} is not a penetration "
+                                    f"checkpoint or is damaged ({type(err).__name__}: "
+                                    f"{err})") from None
+        _load_dem_state(self.sim, grains)
         self.x_ref, self.pen0 = grains["x_ref"], grains["pen0"]
-        self.material_fe = MicropolarMaterial(**state["material"])
+        self.material_fe = material
         self.contact_stats = state["packing"]
         self.surface = state["surface"]
-        fe = dict(np.load(directory / f"continuum_rank{self.comm.rank}_of{self.comm.size}.npz"))
         return {"state": state, "grains": grains, "fe": fe}
 
     def _restore_run(self, saved: dict) -> None:
@@ -715,7 +679,7 @@ class CoupledPenetration:
                 raise ValueError(f"checkpoint field {name} has {fe[name].shape} values, the "
                                  f"mesh {target.x.array.shape}: different parameters or mesh")
             target.x.array[:] = fe[name]
-        self.problem._last_good[:] = fe["last_good"]
+        self.problem.last_good[:] = fe["last_good"]
         st.t = state["t"]
         self.depth = state["depth"]
         self.history = state["history"]

@@ -19,10 +19,12 @@ from coupling.penetration import VERTICAL, CoupledPenetration, PenetrationParame
 __all__ = ["run_penetration"]
 
 
-def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames: int = 5,
+def run_penetration(  # noqa: C901 (the next to split: one runner for every application)
+    prm: PenetrationParameters, out: str | Path, comm, *, frames: int = 5,
                     fields: bool = True, particles: bool = True, png: bool = True,
                     progress: bool = True, log=None, checkpoint_every: int = 0,
-                    restart: bool = False, moving=None) -> dict:
+                    restart: bool = False, moving=None, checkpoint=None, stop=None,
+                    meta: dict | None = None) -> dict:
     """Set up, run and write a coupled penetration into ``out``; returns the results dict.
 
     ``checkpoint_every`` > 0 writes ``out/checkpoint`` every that many FE steps (not after the
@@ -30,15 +32,21 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
     writing frames as ``*_from<step>`` series next to the first run's. ``moving``
     (:class:`coupling.moving_window.MovingWindowParameters`): the window follows the
     penetrator to ``moving.depth`` (no checkpoints); ``results.json`` then lists the moves.
+    ``checkpoint``: the directory a restart continues from (default ``out/checkpoint``);
+    ``meta`` goes into every checkpoint's manifest (the run's fingerprint). ``stop``
+    (:class:`coupling.interrupts.StopRequests`): after an FE step on which a signal arrived,
+    write a checkpoint and raise :class:`coupling.interrupts.Interrupted`.
     """
+    from coupling.interrupts import Interrupted
     from coupling.penetration import CouplingUnstable
     from dem.errors import BlowUpError, DemError
     from dem.io import ParticleWriter, save_state
     from granfe.io import ContinuumWriter
 
     out = Path(out)
-    if restart and not (out / "checkpoint" / "state.json").exists():
-        raise FileNotFoundError(f"no complete checkpoint in {out / 'checkpoint'} to restart from "
+    checkpoint = out / "checkpoint" if checkpoint is None else Path(checkpoint)
+    if restart and not (checkpoint / "state.json").exists():
+        raise FileNotFoundError(f"no complete checkpoint in {checkpoint} to restart from "
                                 "(output.checkpoint_every = 0, or the run stopped before the first)")
     log = log or (lambda msg: print(msg, flush=True) if comm.rank == 0 else None)
     if comm.rank == 0:
@@ -50,11 +58,13 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
                          "checkpoint_every must be 0 and restart False")
     try:
         if moving is None:
-            cpt = CoupledPenetration(prm, comm, log=log, checkpoint=out / "checkpoint" if restart else None)
+            cpt = CoupledPenetration(prm, comm, log=log, checkpoint=checkpoint if restart else None)
         else:
             from coupling.moving_window import MovingWindowPenetration
             cpt = MovingWindowPenetration(prm, moving, comm, log=log)
     except (BlowUpError, DemError, FloatingPointError, ValueError) as err:
+        if restart:   # the grains are the unsettled lattice: nothing worth keeping
+            raise RuntimeError(f"restart from {checkpoint} failed: {err}") from err
         # failed while settling or deriving the continuum: keep the grains' last good state
         where = out / "last_good"
         path, grains = getattr(err, "path", None), getattr(err, "grains", None)
@@ -89,19 +99,32 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
             bar.set_postfix(depth=f"{h['depth'] * 1e3:.1f} mm", q_c=f"{h['q_c'] / 1e3:.2f} kPa",
                             step=f"{h['wall_time']:.2f} s")
             bar.update(1)
-        if checkpoint_every and h["step"] % checkpoint_every == 0 and h["step"] != n_steps:
-            cpt.save_checkpoint(out / "checkpoint")
-        if h["step"] % every and h["step"] != n_steps:
-            return
-        if writer is not None:
-            writer.write(h["time"])
-        if grains is not None:
-            p = cpt.sim.p
-            grains.write(h["time"], p.x, p.radius, velocity=p.v, kind=p.kind.astype(float), force=p.force)
+        saved = checkpoint_every and h["step"] % checkpoint_every == 0 and h["step"] != n_steps
+        if saved:
+            cpt.save_checkpoint(out / "checkpoint", meta=meta)
+        if not (h["step"] % every and h["step"] != n_steps):
+            if writer is not None:
+                writer.write(h["time"])
+            if grains is not None:
+                p = cpt.sim.p
+                grains.write(h["time"], p.x, p.radius, velocity=p.v, kind=p.kind.astype(float),
+                             force=p.force)
+        signum = stop.requested(comm) if stop is not None else 0
+        if signum and h["step"] != n_steps:
+            if moving is not None:   # a window that follows the penetrator writes no checkpoints
+                raise Interrupted(signum, h["step"], None, out)
+            if not saved:
+                cpt.save_checkpoint(out / "checkpoint", meta=meta)
+            raise Interrupted(signum, h["step"], out / "checkpoint", out)
 
     t0 = time.perf_counter()
     try:
         history = cpt.run(progress=on_step)
+    except Interrupted:
+        for w in (writer, grains):
+            if w is not None:
+                w.close()
+        raise
     except (BlowUpError, DemError, CouplingUnstable, FloatingPointError, ValueError) as err:
         where = out / "last_good"
         cpt.problem.write_checkpoint(where)

@@ -12,8 +12,13 @@ from dolfinx import mesh
 
 from coupling.regions import Box, CouplingRegions
 from coupling.staggered import StaggeredCoupling, StaggeredOptions
-from dem.bonded import (BondedAssembly, BondedSubproblem, find_bonds, hexagonal_lattice,
-                        hexagonal_lattice_micropolar)
+from dem.bonded import (
+    BondedAssembly,
+    BondedSubproblem,
+    find_bonds,
+    hexagonal_lattice,
+    hexagonal_lattice_micropolar,
+)
 from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 
@@ -85,6 +90,8 @@ def fe_block(comm, block: PunchBlock, element_size: float, degree=(2, 2), prefix
 
 @dataclass
 class CoupledPunch:
+    """The bonded punch set up for a staggered coupled solve."""
+
     coupling: StaggeredCoupling
     particles: BondedSubproblem
     keep: np.ndarray        # indices into the block's grains

@@ -3,10 +3,13 @@
 Output directory layout::
 
     scene.toml            the scene as run (with --set overrides applied)
+    run.json              the run's fingerprint (coupling.rundir): the directory is this run's
     history.json / .csv   settlement, punch force, iterations, wall time per step
     continuum_*.bp        VTX series of u, phi, sigma, m (ParaView)
     particles/*.vtu, particles.pvd
-    checkpoint/           last converged state (FE dofs per rank, step index)
+    checkpoint/           last converged state (FE dofs per rank, step index, manifest.json
+                          with sha256s; coupling.checkpoints), checkpoint.prev/ the one before
+    last_good/            the last converged state of a failed solve
     *.png                 force-settlement curve and the particles over the continuum
 """
 
@@ -18,9 +21,9 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
-from mpi4py import MPI
 
 from coupling.punch import coupled_window, fe_block, lattice_block
 from coupling.scene import Scene, load_scene
@@ -53,7 +56,7 @@ def _write_particles(out: Path, step: int, t: float, x, u, theta, kinds, series:
         f"{entries}\n  </Collection>\n</VTKFile>\n")
 
 
-def _summarise_penetration(scene) -> dict:
+def _summarise_penetration(scene, ranks: int = 1) -> dict:
     from coupling.penetration import contact_material, dem_time_step
 
     prm = scene.parameters()
@@ -78,21 +81,29 @@ def _summarise_penetration(scene) -> dict:
         dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [contact_material(prm)])  # the DEM's default
     # the size field ramps from fine to coarse over about the window size again
     hw, hf = prm.element_size_window, prm.element_size_far
-    if dim == 2:
+    if dim == 2:   # 0.87-0.91 of the gmsh meshes' nodes without the factor 1.1
         window_cells = 4 * (2 * (prm.window_half_width + band) * (prm.window_depth + band)) / hw**2
         far_cells = 2 * prm.chamber_width * prm.chamber_depth / hf**2
-        nodes = (window_cells + far_cells) / 2
-    else:  # ~6 tetrahedra per h^3 cube, ~1/5 node per tetrahedron
-        window = np.pi * 2 * (prm.window_half_width + band) ** 2 * (prm.window_depth + band)
-        chamber = np.pi * prm.chamber_width**2 / 4 * prm.chamber_depth
-        nodes = (6 * window / hw**3 + 6 * chamber / hf**3) / 5
+        nodes = 1.1 * (window_cells + far_cells) / 2
+        fine = window_cells > far_cells
+    else:
+        # fitted to 9 gmsh chambers (h_window 4-10 mm, h_far 2-8 cm; within 3 %): the refined
+        # cylinder's volume and surface in h_window, the chamber's volume in h_far
+        rw, dw = np.sqrt(2) * (prm.window_half_width + band), prm.window_depth + band
+        surface = np.pi * rw**2 + 2 * np.pi * rw * dw
+        window = 0.97 * np.pi * rw**2 * dw / hw**3 + 1.66 * surface / hw**2
+        far = 0.68 * np.pi * prm.chamber_width**2 / 4 * prm.chamber_depth / hf**3
+        nodes, fine = window + far, window > far
     dofs = (3 if dim == 2 else 6) * nodes
     depth = scene.penetrator.depth   # the whole push (more than prm.depth if the window follows)
     out = {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
            "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
            "dem_steps_estimate": int((prm.settle_time + depth / prm.velocity) / dt),
            "fe_steps": int(np.ceil(depth / prm.velocity / (prm.substeps * dt))),
-           "memory_estimate_MB_per_rank": _memory_mb(1.25 * grains, dofs)}
+           "memory_estimate_MB_per_rank": _memory_mb(1.25 * grains, dofs / ranks)}
+    fe_heavy = 0.0025 * dofs / ranks > 0.024 * 1.25 * grains
+    out["memory_driver"] = (("chamber.element_size_window" if fine else "chamber.element_size_far")
+                            if fe_heavy else "grains.radius")
     mv = scene.moving_parameters()
     if mv is not None:
         # each move adds ``step`` diameters of window depth (fewer once it travels)
@@ -100,6 +111,10 @@ def _summarise_penetration(scene) -> dict:
         moves = max(0, int(np.ceil((depth - tip_room) / (mv.step * d))))
         out.update(window_follows=True, window_moves_estimate=moves,
                    dem_steps_estimate=out["dem_steps_estimate"] + moves * mv.settle_steps)
+    from coupling.preflight import run_time_s
+
+    out["run_time_estimate_s"] = round(run_time_s(dim, 1.25 * grains, out["dem_steps_estimate"],
+                                                  out["fe_steps"], dofs, ranks), 0)
     return out
 
 
@@ -111,10 +126,11 @@ def _memory_mb(particles: float, dofs: float) -> float:
     return round(550.0 + 0.024 * particles + 0.0025 * dofs, 0)
 
 
-def summarise(scene) -> dict:
-    """Sizes and cost estimates without building FE objects (for ``granfe check``)."""
+def summarise(scene, ranks: int = 1) -> dict:
+    """Sizes and cost estimates on ``ranks`` MPI ranks without building FE objects (for
+    ``granfe check``; :func:`coupling.preflight.preflight` adds the checks)."""
     if scene.scene.kind == "penetration":
-        return _summarise_penetration(scene)
+        return _summarise_penetration(scene, ranks)
     g, p, w = scene.geometry, scene.particles, scene.window
     d = 2 * p.radius
     grains_block = (g.width / d) * (g.height / (d * np.sqrt(3) / 2))
@@ -123,7 +139,8 @@ def summarise(scene) -> dict:
     cells = 2 * (g.width / g.element_size) * (g.height / g.element_size)
     nodes_u = (2 * g.width / g.element_size + 1) * (2 * g.height / g.element_size + 1) if g.degree_u == 2 \
         else (g.width / g.element_size + 1) * (g.height / g.element_size + 1)
-    nodes_phi = nodes_u if g.degree_phi == g.degree_u else (g.width / g.element_size + 1) * (g.height / g.element_size + 1)
+    nodes_p1 = (g.width / g.element_size + 1) * (g.height / g.element_size + 1)
+    nodes_phi = nodes_u if g.degree_phi == g.degree_u else nodes_p1
     dofs = 2 * nodes_u + nodes_phi
     return {
         "kind": scene.scene.kind, "dimension": scene.scene.dimension,
@@ -131,35 +148,70 @@ def summarise(scene) -> dict:
         "grains_in_window_and_ghost_band": int(grains_window),
         "grains_if_all_dem": int(grains_block),
         "load_steps": scene.penetrator.steps,
-        "memory_estimate_MB_per_rank": _memory_mb(grains_window, dofs),
+        "memory_estimate_MB_per_rank": _memory_mb(grains_window, dofs / ranks),
+        "memory_driver": "geometry.element_size",
         "time_step": "quasi-static (no explicit time step)",
+        # one sparse direct solve per staggered iteration, ~10 iterations per load step
+        "run_time_estimate_s": round(5.0 + scene.penetrator.steps * 10
+                                     * (0.02 + 2e-5 * dofs / ranks), 0),
     }
 
 
-def run_scene(scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
-              start_step: int = 0) -> dict:
-    """Run a ``bonded_punch`` scene into ``out``; returns the history."""
+def run_scene(  # noqa: C901 (the next to split: one runner for every application)
+    scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
+              start_step: int = 0, checkpoint: str | Path | None = None, stop=None,
+              meta: dict | None = None) -> dict:
+    """Run a ``bonded_punch`` scene into ``out``; returns the history.
+
+    A checkpoint (:mod:`coupling.checkpoints`, ``meta`` in its manifest) is written before
+    the first step and after every step; ``start_step`` > 0 continues from ``checkpoint``
+    (default ``out/checkpoint``). ``stop`` (:class:`coupling.interrupts.StopRequests`): after
+    a step on which a signal arrived, raise :class:`coupling.interrupts.Interrupted`."""
+    from coupling.checkpoints import write_checkpoint
+    from coupling.interrupts import Interrupted
+
     out = Path(out)
+    checkpoint = out / "checkpoint" if checkpoint is None else Path(checkpoint)
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
-        (out / "scene.toml").write_text(scene.to_toml())
+        if not start_step:
+            (out / "scene.toml").write_text(scene.to_toml())
     comm.barrier()
     g, p, w, pen, s = scene.geometry, scene.particles, scene.window, scene.penetrator, scene.solver
     block = lattice_block(g.width, g.height, p.radius, p.kn, p.kt, p.kr_factor, pen.width)
+    # a failed solve writes its last converged state here (the checkpoints stay intact)
     problem = fe_block(comm, block, g.element_size, (g.degree_u, g.degree_phi), prefix="scene_",
-                       checkpoint_dir=out / "checkpoint")
+                       checkpoint_dir=out / "last_good")
     run = coupled_window(block, problem, w.half_width, w.depth, w.ghost_width * 2 * p.radius,
                          w.handshake * g.element_size,
                          StaggeredOptions(tol=s.tol, max_iterations=s.max_iterations))
     history_path = out / "history.json"
-    history = json.loads(history_path.read_text())["steps"] if start_step and history_path.exists() else []
+    history = []
+    if start_step and history_path.exists():
+        # rows after the checkpoint's step (written before a kill) are computed again
+        rows = json.loads(history_path.read_text())["steps"]
+        history = [h for h in rows if h["step"] <= start_step]
     if start_step:
-        problem.read_checkpoint(out / "checkpoint")
+        problem.read_checkpoint(checkpoint)
+
+    def save(step: int):
+        def files(tmp: Path) -> list[str]:
+            problem.write_checkpoint(tmp)
+            names = [f"continuum_rank{comm.rank}_of{comm.size}.npz"]
+            if comm.rank == 0:
+                (tmp / "state.json").write_text(json.dumps({"step": step}))
+                names.append("state.json")
+            return names
+        write_checkpoint(out / "checkpoint", step, comm, files, meta=meta)
+
+    if not start_step:
+        save(0)   # the initial state: a failure in step 1 can be continued after a fix
     writer = None
     if scene.output.fields:
         from granfe.io import ContinuumWriter
         writer = ContinuumWriter(problem, out, name=f"continuum_from{start_step:04d}")
-    series: list = []
+    # the particle frames of the steps before the restart stay in particles.pvd
+    series: list = _pvd_entries(out / "particles.pvd", start_step) if start_step else []
     bar = None
     if progress and comm.rank == 0:
         from tqdm import tqdm
@@ -180,13 +232,13 @@ def run_scene(scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool
                     problem.write_checkpoint()
                     raise RunStopped(
                         f"step {step + 1} (settlement {trial:.4g} m) failed after {s.cutbacks} "
-                        f"cut-backs: {err}. Last good state (step {step}) is in {out / 'checkpoint'}; "
-                        f"continue with `granfe restart {out}` after changing the scene") from err
+                        f"cut-backs: {err}. Last good state (step {step}) is the checkpoint in "
+                        f"{out / 'checkpoint'}; continue with `granfe restart {out}` after "
+                        f"changing solver.* (or penetrator.steps) in {out / 'scene.toml'}") from err
         settled = target
         elapsed = time.perf_counter() - t0
         history.append({"step": step + 1, "settlement": target, "punch_force": run.punch_force(),
                         "iterations": its, "wall_time_s": elapsed})
-        problem.write_checkpoint()
         if step % scene.output.every == 0 or step + 1 == pen.steps:
             if writer is not None:
                 writer.write(float(step + 1))
@@ -195,16 +247,23 @@ def run_scene(scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool
                 _write_particles(out / "particles", step + 1, float(step + 1), x, run.coupling.u,
                                  run.coupling.theta, run.coupling.kinds, series)
         if comm.rank == 0:
-            (out / "checkpoint" / "state.json").write_text(json.dumps({"step": step + 1}))
             history_path.write_text(json.dumps({"scene": scene.to_dict(), "steps": history}, indent=2))
             with open(out / "history.csv", "w", newline="") as f:
                 wr = csv.DictWriter(f, fieldnames=list(history[0]))
                 wr.writeheader()
                 wr.writerows(history)
+        save(step + 1)
         if bar is not None:
             bar.set_postfix(settlement=f"{target:.3g} m", force=f"{history[-1]['punch_force']:.3g} N/m",
                             step_time=f"{elapsed:.2f} s")
             bar.update(1)
+        signum = stop.requested(comm) if stop is not None else 0
+        if signum and step + 1 < pen.steps:
+            if bar is not None:
+                bar.close()
+            if writer is not None:
+                writer.close()
+            raise Interrupted(signum, step + 1, out / "checkpoint", out)
     if bar is not None:
         bar.close()
     if writer is not None:
@@ -212,6 +271,16 @@ def run_scene(scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool
     if scene.output.png:
         _figures(out, problem, run, history, comm)
     return {"steps": history}
+
+
+def _pvd_entries(path: Path, last_step: int) -> list:
+    """(time, file) of the frames in a ``.pvd`` collection up to ``last_step``."""
+    import re
+
+    if not path.exists():
+        return []
+    entries = re.findall(r'<DataSet timestep="([^"]+)" file="([^"]+)"/>', path.read_text())
+    return [(float(t), f) for t, f in entries if float(t) <= last_step + 1e-9]
 
 
 def _figures(out, problem, run, history, comm):
@@ -242,10 +311,14 @@ def _figures(out, problem, run, history, comm):
         fig.savefig(out / "force_settlement.png", dpi=120)
 
 
-def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True) -> dict:
-    """Continue a run from its last checkpoint (same rank count)."""
+def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
+                  checkpoint: str | Path | None = None, stop=None,
+                  meta: dict | None = None) -> dict:
+    """Continue a run from its checkpoint (``out/checkpoint`` unless ``checkpoint``; same
+    rank count)."""
     out = Path(out)
-    state = out / "checkpoint" / "state.json"
+    checkpoint = out / "checkpoint" if checkpoint is None else Path(checkpoint)
+    state = checkpoint / "state.json"
     if not state.exists():
         raise FileNotFoundError(f"no checkpoint in {out} (expected {state})")
     step = json.loads(state.read_text())["step"]
@@ -259,4 +332,5 @@ def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True) -
                   "nothing to restart (raise penetrator.steps in its scene.toml to go further)",
                   flush=True)
         return json.loads((out / "history.json").read_text())
-    return run_scene(scene, out, comm, progress, start_step=step)
+    return run_scene(scene, out, comm, progress, start_step=step, checkpoint=checkpoint, stop=stop,
+                     meta=meta)

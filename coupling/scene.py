@@ -29,6 +29,12 @@ def _positive(section, name, value):
         raise SceneError(f"{section}.{name} must be > 0, got {value!r}")
 
 
+def _in_range(key, value, lo, hi, text, upper_open=False):
+    ok = math.isfinite(value) and lo <= value and (value < hi if upper_open else value <= hi)
+    if not ok:
+        raise SceneError(f"{key} must lie in {text}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class SceneInfo:
     name: str = "scene"
@@ -36,6 +42,9 @@ class SceneInfo:
     dimension: int = 2
 
     def __post_init__(self):
+        if not self.name or self.name in (".", "..") or any(c in self.name for c in "/\0"):
+            raise SceneError(f"scene.name must be a plain name (it names the output directory), "
+                             f"got {self.name!r}")
         if self.kind not in KINDS:
             raise SceneError(f"scene.kind must be one of {list(KINDS)}, got {self.kind!r}")
         allowed = (2, 3) if self.kind == "penetration" else (2,)
@@ -201,6 +210,17 @@ class Chamber:
     element_size_window: float = 0.008
     element_size_far: float = 0.04
 
+    def __post_init__(self):
+        for n in ("width", "depth", "element_size_window", "element_size_far"):
+            _positive("chamber", n, getattr(self, n))
+        if self.element_size_window > self.element_size_far:
+            raise SceneError(f"chamber.element_size_window = {self.element_size_window} is coarser "
+                             f"than chamber.element_size_far = {self.element_size_far}: the mesh "
+                             "is refined toward the window, not away from it")
+        if self.element_size_far > min(self.width, self.depth):
+            raise SceneError(f"chamber.element_size_far = {self.element_size_far} is larger than "
+                             f"the chamber (width {self.width}, depth {self.depth})")
+
 
 @dataclass(frozen=True)
 class Grains:
@@ -221,6 +241,21 @@ class Grains:
     seed: int = 1
     youngs_modulus: float = 2.9e7
 
+    def __post_init__(self):
+        for n in ("radius", "kn", "density", "settle_time", "youngs_modulus"):
+            _positive("grains", n, getattr(self, n))
+        _in_range("grains.friction", self.friction, 0.0, math.inf, "[0, inf)")
+        _in_range("grains.kt_over_kn", self.kt_over_kn, 0.0, math.inf, "[0, inf)")
+        _in_range("grains.jitter", self.jitter, 0.0, 0.5, "[0, 0.5)", upper_open=True)
+        if not (0.0 < self.restitution <= 1.0):
+            raise SceneError(f"grains.restitution must lie in (0, 1], got {self.restitution!r}")
+        if not (-1.0 < self.nu < 0.5):
+            raise SceneError(f"grains.nu must lie in (-1, 0.5), got {self.nu!r}")
+        if not math.isfinite(self.gravity):
+            raise SceneError(f"grains.gravity must be finite, got {self.gravity!r}")
+        if self.seed < 0:
+            raise SceneError(f"grains.seed must be an integer >= 0, got {self.seed!r}")
+
 
 @dataclass(frozen=True)
 class PenetrationWindow:
@@ -228,6 +263,13 @@ class PenetrationWindow:
     depth: float = 0.08
     ghost_width: float = 2.5
     handshake: float = 2.0
+
+    def __post_init__(self):
+        for n in ("half_width", "depth", "ghost_width", "handshake"):
+            _positive("window", n, getattr(self, n))
+        if self.ghost_width < 1.0:
+            raise SceneError(f"window.ghost_width = {self.ghost_width} grain diameters is too "
+                             "thin: the ghost band holds the window's grains (>= 1 diameter)")
 
 
 @dataclass(frozen=True)
@@ -245,6 +287,11 @@ class Cone:
         if self.shape not in ("cone", "pile"):
             raise SceneError(f"penetrator.shape must be 'cone' or 'pile' for a penetration scene, "
                              f"got {self.shape!r}")
+        for n in ("radius", "velocity", "depth"):
+            _positive("penetrator", n, getattr(self, n))
+        if not (10.0 <= self.apex_deg <= 180.0):
+            raise SceneError(f"penetrator.apex_deg must lie in [10, 180] degrees, "
+                             f"got {self.apex_deg!r}")
 
 
 @dataclass(frozen=True)
@@ -255,6 +302,8 @@ class Exchange:
     relaxation: float = 0.3
 
     def __post_init__(self):
+        if self.substeps < 1:
+            raise SceneError(f"coupling.substeps must be >= 1, got {self.substeps!r}")
         if not 0 < self.relaxation <= 1:
             raise SceneError(f"coupling.relaxation must lie in (0, 1], got {self.relaxation!r}")
 
@@ -332,11 +381,31 @@ class PenetrationScene(_Tables):
 
     def __post_init__(self):
         self.parameters()  # validate the combination, naming the scene key
+        self._check_sizes()
         if self.follow.enabled:
             self.moving_parameters()
             if self.output.checkpoint_every:
                 raise SceneError("output.checkpoint_every must be 0 when follow.enabled = true: a "
                                  "window that follows the penetrator writes no checkpoints yet")
+
+    def _check_sizes(self):
+        """The window against the chamber and its elements, grains against the elements."""
+        c, g, w = self.chamber, self.grains, self.window
+        d = 2 * g.radius
+        bottom = w.depth + w.ghost_width * d + c.element_size_window
+        if bottom >= c.depth:
+            raise SceneError(f"window.depth = {w.depth} m (with its ghost band and an element "
+                             f"below: {bottom:.4g} m) does not fit in chamber.depth = {c.depth} m")
+        if c.element_size_window > 0.5 * min(w.half_width, w.depth):
+            raise SceneError(f"chamber.element_size_window = {c.element_size_window} m is larger "
+                             f"than half the window (window.half_width = {w.half_width}, "
+                             f"window.depth = {w.depth}): no FE node of the window would be "
+                             "prescribed by grains")
+        if d > c.element_size_window:
+            raise SceneError(f"grains.radius = {g.radius}: grains larger than "
+                             f"chamber.element_size_window = {c.element_size_window} leave the "
+                             "window's FE nodes without grains (the projection needs several "
+                             "per element)")
 
     def moving_parameters(self):
         """The :class:`coupling.moving_window.MovingWindowParameters` of this scene, or None
@@ -392,11 +461,34 @@ def _named(message: str, keys: dict) -> str:
 
 
 def _toml_value(v):
+    """``v`` as a TOML value that :mod:`tomllib` reads back equal."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, str):
-        return f'"{v}"'
+        return _toml_string(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
     return repr(v)
+
+
+_ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f",
+            "\r": "\\r"}
+
+
+def _toml_string(s: str) -> str:
+    """A TOML basic string: quotes, backslashes and control characters escaped."""
+    out = []
+    for ch in s:
+        if ch in _ESCAPES:
+            out.append(_ESCAPES[ch])
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
 
 
 SCHEMAS = {"bonded_punch": Scene, "penetration": PenetrationScene}
@@ -462,10 +554,17 @@ def load_scene(path: str | Path | None = None, overrides: dict | None = None):
         path = Path(path)
         if not path.exists():
             raise SceneError(f"scene file {path} does not exist")
+        if path.is_dir():
+            raise SceneError(f"{path} is a directory, not a scene file (to continue a run in it: "
+                             f"granfe restart {path})")
         try:
-            data = tomllib.loads(path.read_text())
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
         except tomllib.TOMLDecodeError as err:
             raise SceneError(f"{path} is not valid TOML: {err}") from None
+        except UnicodeDecodeError:
+            raise SceneError(f"{path} is not a text (UTF-8 TOML) scene file") from None
+        except OSError as err:
+            raise SceneError(f"cannot read {path}: {err.strerror or err}") from None
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
     return _build(data)

@@ -39,6 +39,8 @@ class InterfaceDidNotConverge(RuntimeError):
 
 
 class ParticleSubproblem(Protocol):
+    """What the staggered loop needs of the particles: their motion for given ghost motion."""
+
     def solve(self, u_ghost: np.ndarray, theta_ghost: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 

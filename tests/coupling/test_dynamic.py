@@ -1,16 +1,21 @@
 """Dynamic DE x FE coupling: a uniform motion passes the overlap unchanged; serial == 2 ranks."""
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
 from dolfinx import mesh
-from mpi4py import MPI
 
 from coupling.dynamic import DynamicCoupling, DynamicOptions
 from coupling.regions import Box, CouplingRegions
-from dem.bonded import (BondedAssembly, BondedDynamics, find_bonds, hexagonal_lattice,
-                        hexagonal_lattice_micropolar)
+from dem.bonded import (
+    BondedAssembly,
+    BondedDynamics,
+    find_bonds,
+    hexagonal_lattice,
+    hexagonal_lattice_micropolar,
+)
 from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 

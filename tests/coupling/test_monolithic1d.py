@@ -1,10 +1,10 @@
 """Monolithic DE x FE 1D coupling (seed 001 §2.4.3-2.4.4, eq. 122, 125-126)."""
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from coupling.monolithic1d import full_overlap, partial_overlap, rod_basis
 from dem.glued import GluedLaw, GluedString

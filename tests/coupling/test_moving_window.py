@@ -3,13 +3,19 @@
 from dataclasses import replace
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
-from mpi4py import MPI
 
-from coupling.moving_window import (MovingWindowParameters, MovingWindowPenetration, lattice_fill,
-                                    moved_window, push_apart, tip_near_bottom)
+from coupling.moving_window import (
+    MovingWindowParameters,
+    MovingWindowPenetration,
+    lattice_fill,
+    moved_window,
+    push_apart,
+    tip_near_bottom,
+)
 from coupling.penetration import PenetrationParameters
 from coupling.regions import Box, Union
 from dem import GHOST, build_pairs
@@ -111,7 +117,7 @@ def test_move_prescribed_nodes_cover_new_window(moved):
     Vu, parent = V.sub(0).collapse()
     coords = np.repeat(Vu.tabulate_dof_coordinates(), Vu.dofmap.bs, axis=0)
     parent = np.asarray(parent[0] if isinstance(parent, list) else parent).ravel()
-    lookup = dict(zip(parent.tolist(), range(len(parent))))
+    lookup = dict(zip(parent.tolist(), range(len(parent)), strict=False))
     pts = coords[[lookup[d] for d in cpt.interface.fields[0].prescribed]][:, :2]
     assert np.all(cpt.regions.prescribed_nodes(pts)), "a prescribed node outside the window"
     deep = cpt.comm.allreduce(int(np.sum(pts[:, 1] < before["window"].lo[1])), MPI.SUM)
@@ -216,10 +222,11 @@ def test_released_dofs_start_in_equilibrium(travelled):
     release load f0 makes its out-of-balance force vanish there and they start at rest, so
     the continuum starts from it instead of springing back (which threw grains out at 12 m/s
     in the demo)."""
+    from petsc4py import PETSc
+
     import ufl
     from dolfinx import fem
     from dolfinx.fem.petsc import assemble_vector
-    from petsc4py import PETSc
 
     from granfe.forms import internal_work
 

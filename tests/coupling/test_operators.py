@@ -5,13 +5,12 @@ compares a 2-rank run with a serial (COMM_SELF) run of the same problem to round
 """
 
 import dolfinx_solver  # noqa: F401
-
-import numpy as np
-import pytest
 from mpi4py import MPI
 
 import basix.ufl
 import dolfinx
+import numpy as np
+import pytest
 from dolfinx import fem, mesh
 
 from coupling.locate import PointsOutsideMesh, owner_ranks

@@ -1,16 +1,21 @@
 """Staggered DE x FE coupling: patch test through the overlap, serial == 2 ranks, bad input."""
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
 from dolfinx import mesh
-from mpi4py import MPI
 
 from coupling.regions import Box, CouplingRegions
 from coupling.staggered import InterfaceDidNotConverge, StaggeredCoupling, StaggeredOptions
-from dem.bonded import (BondedAssembly, BondedSubproblem, find_bonds, hexagonal_lattice,
-                        hexagonal_lattice_constants)
+from dem.bonded import (
+    BondedAssembly,
+    BondedSubproblem,
+    find_bonds,
+    hexagonal_lattice,
+    hexagonal_lattice_constants,
+)
 from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 
@@ -62,8 +67,9 @@ def test_patch_uniform_strain_through_overlap(degree):
     assert err < 1e-10, (its, err)
     assert np.abs(coupling.theta).max() < 1e-10 * np.abs(u_exact).max() / R
     # and the FE field inside the window is the same affine field
-    from granfe.probe import probe
     from dolfinx import fem
+
+    from granfe.probe import probe
     u = fem.Function(fem.functionspace(coupling.problem.domain, ("Lagrange", degree[0], (2,))))
     u.interpolate(coupling.problem.w.sub(0))
     pts = np.array([[0.5, 0.5, 0], [0.35, 0.62, 0], [0.1, 0.9, 0]])

@@ -1,10 +1,10 @@
 """Axial waves through the 1D rod x spring-string overlap (seed 001 eq. 79-90, 108-121)."""
 
 import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
 
 import numpy as np
 import pytest
-from mpi4py import MPI
 
 from coupling.monolithic1d import AverageAcceleration, axial_overlap, particle_share
 from dem.glued import SpringString

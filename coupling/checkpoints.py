@@ -1,0 +1,146 @@
+"""Checkpoints written atomically and validated on read.
+
+A checkpoint is a directory ``<base>`` (``out/checkpoint``) of files and a ``manifest.json``
+with the sha256 of every file, the step, the rank count and the run's fingerprint
+(:mod:`coupling.rundir`). It is written as ``<base>.tmp-<step>`` (every file fsynced, the
+manifest last), then rotated into place: ``<base>`` -> ``<base>.prev``, then
+``<base>.tmp-<step>`` -> ``<base>``. A kill at any moment leaves at least one complete
+checkpoint; :func:`find_checkpoint` takes the newest one that validates (``<base>``, a
+complete ``<base>.tmp-*`` or ``<base>.prev``) and says which ones it passed over and why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+__all__ = ["MANIFEST", "CheckpointError", "write_checkpoint", "validate", "find_checkpoint",
+           "set_aside_invalid"]
+
+MANIFEST = "manifest.json"
+
+
+class CheckpointError(RuntimeError):
+    """No complete, valid checkpoint; the message lists what was found and why it was refused."""
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_checkpoint(base, step: int, comm, write_files, meta: dict | None = None) -> Path:
+    """Write a checkpoint of ``step`` atomically into ``base`` (collective).
+
+    ``write_files(directory) -> list[str]`` writes this rank's files into ``directory`` and
+    returns their names. ``meta`` (JSON) goes into the manifest. The previous checkpoint is
+    kept as ``<base>.prev`` until the new one is complete and in place.
+    """
+    base = Path(base)
+    tmp = base.parent / f"{base.name}.tmp-{step:06d}"
+    if comm.rank == 0:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir(parents=True)
+    comm.barrier()
+    names = write_files(tmp)
+    digests = {}
+    for name in names:
+        _fsync(tmp / name)
+        digests[name] = _sha256(tmp / name)
+    gathered = comm.gather(digests, root=0)
+    if comm.rank == 0:
+        files = {k: v for d in gathered for k, v in d.items()}
+        manifest = {"format": 1, "step": int(step), "ranks": comm.size, "files": files,
+                    "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **(meta or {})}
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=float))
+        _fsync(tmp / MANIFEST)
+        _fsync(tmp)
+        prev = base.parent / f"{base.name}.prev"
+        if base.exists():
+            if prev.exists():
+                shutil.rmtree(prev)
+            os.replace(base, prev)
+        os.replace(tmp, base)
+        _fsync(base.parent)
+        for stale in base.parent.glob(f"{base.name}.tmp-*"):
+            shutil.rmtree(stale, ignore_errors=True)
+    comm.barrier()
+    return base
+
+
+def validate(directory) -> tuple[dict | None, str]:
+    """(manifest, "") for a complete checkpoint whose files all match their sha256, else
+    (None, the reason)."""
+    directory = Path(directory)
+    path = directory / MANIFEST
+    if not directory.is_dir():
+        return None, "missing"
+    if not path.exists():
+        return None, f"no {MANIFEST} (incomplete, or written by an older granfe)"
+    try:
+        manifest = json.loads(path.read_text())
+        files, step = manifest["files"], int(manifest["step"])
+    except (ValueError, KeyError, TypeError, OSError) as err:
+        return None, f"{MANIFEST} is unreadable ({type(err).__name__})"
+    for name, digest in files.items():
+        f = directory / name
+        if not f.exists():
+            return None, f"{name} is missing"
+        if _sha256(f) != digest:
+            return None, f"{name} does not match its sha256 (truncated or corrupt)"
+    manifest["step"] = step
+    return manifest, ""
+
+
+def find_checkpoint(base) -> tuple[Path, dict, list[str]]:
+    """The newest valid checkpoint among ``<base>``, ``<base>.tmp-*`` and ``<base>.prev``:
+    (its directory, its manifest, notes on the ones passed over). Raises
+    :class:`CheckpointError` when none is valid."""
+    base = Path(base)
+    candidates = [base, *sorted(base.parent.glob(f"{base.name}.tmp-*")),
+                  base.parent / f"{base.name}.prev"]
+    found, refused = [], []
+    for c in candidates:
+        manifest, reason = validate(c)
+        if manifest is not None:
+            found.append((manifest["step"], c, manifest))
+        elif c.exists():
+            refused.append(f"{c}: {reason}")
+    if not found:
+        detail = "; ".join(refused) if refused else f"no {base} directory"
+        raise CheckpointError(f"no complete checkpoint in {base.parent} to restart from ({detail})")
+    step, path, manifest = max(found, key=lambda f: f[0])
+    notes = list(refused)
+    if path != base:
+        notes.append(f"falling back to {path} (step {step})")
+    return path, manifest, notes
+
+
+def set_aside_invalid(base) -> Path | None:
+    """Before continuing from a fallback: rename an invalid ``<base>`` to ``<base>.corrupt``
+    (kept for inspection) so that the next checkpoint's rotation keeps the valid one as
+    ``<base>.prev``. Returns the new name, or None when ``<base>`` is valid or absent."""
+    base = Path(base)
+    if not base.exists() or validate(base)[0] is not None:
+        return None
+    bad = base.parent / f"{base.name}.corrupt"
+    if bad.exists():
+        shutil.rmtree(bad)
+    os.replace(base, bad)
+    return bad
