@@ -27,11 +27,12 @@ $(VENV)/.installed: pyproject.toml
 
 # the main job: the coupled DE x FE scene on 2 MPI ranks (outputs in output/<scene name>/)
 demo: venv
-	NUMBA_NUM_THREADS=1 $(MPIEXEC) -n $(NP) $(VENV)/bin/granfe run $(SCENE)
+	NUMBA_NUM_THREADS=1 $(MPIEXEC) -n $(NP) $(VENV)/bin/granfe run $(SCENE) --overwrite
 
-# serial half (everything), then the MPI half (tests marked `mpi`) on 2 ranks;
+# ruff, then the serial half (everything), then the MPI half (tests marked `mpi`) on 2 ranks;
 # NUMBA_NUM_THREADS=1 under MPI so two ranks do not oversubscribe two cores.
 test: venv
+	$(MAKE) --no-print-directory lint
 	$(MAKE) --no-print-directory test-serial
 	$(MAKE) --no-print-directory test-mpi
 
@@ -41,8 +42,8 @@ test-serial: venv
 test-mpi: venv
 	NUMBA_NUM_THREADS=1 $(MPIEXEC) -n 2 $(PY) -m pytest -m mpi -p no:cacheprovider $(PYTEST_ARGS)
 
+# the style rules of pyproject.toml (imports, docstrings, complexity) on the whole tree
 lint: venv
-	$(PY) -m pip install --quiet ruff
 	$(PY) -m ruff check granfe dem coupling tests demos benchmarks meshes
 
 clean:
