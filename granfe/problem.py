@@ -106,10 +106,6 @@ class ContinuumProblem:
         self.last_good = self.w.x.array.copy()
 
     @property
-    def _last_good(self):   # the former name, until the penetration checkpoint uses state_dict
-        return self.last_good
-
-    @property
     def material(self):
         return self.model.material
 
