@@ -37,7 +37,7 @@ SHORT = os.environ.get("GRANFE_SHORT") == "1"
 SEEDS = (1,) if SHORT else (1, 2)
 D = 3e-3   # grain diameter [m]
 CASES = {
-    "fixed": {"window_depth": 0.11, "moving": {"max_moves": 0}},
+    "fixed": {"window_depth": 0.11, "moving": {"max_moves": 0, "trigger": 3.0}},
     **{f"trigger_{t}": {"moving": {"trigger": t, "max_height": (t + 6) * D + 0.03}} for t in (6, 12, 18)},
     "ghost_top": {"moving": {"trigger": 6, "max_height": 12 * D + 0.03, "chimney": 0.0}},
 }

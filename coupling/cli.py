@@ -164,21 +164,15 @@ def _restart(args, comm) -> int:
 
 def _execute(scene, out: Path, comm, args, meta: dict, checkpoint: Path | None = None) -> int:
     """Run (or continue from ``checkpoint``) with SIGINT / SIGTERM stopping after a step."""
+    from coupling.applications import application
     from coupling.interrupts import Interrupted, StopRequests
     from coupling.runner import RunStopped
 
-    restart = checkpoint is not None
     try:
         with StopRequests(quiet=comm.rank != 0) as stop:
-            if scene.scene.kind == "penetration":
-                _penetration(scene, out, comm, args, meta, checkpoint, stop)
-            else:
-                from coupling.runner import restart_scene, run_scene
-                if restart:
-                    restart_scene(out, comm, progress=not args.no_progress, checkpoint=checkpoint,
-                                  stop=stop, meta=meta)
-                else:
-                    run_scene(scene, out, comm, progress=not args.no_progress, stop=stop, meta=meta)
+            run = application(scene.scene.kind).load("run")
+            run(scene, out, comm, progress=not args.no_progress, checkpoint=checkpoint, stop=stop,
+                meta=meta)
     except Interrupted as err:
         mpi = f"mpiexec -n {comm.size} " if comm.size > 1 else ""
         _say(comm, f"granfe: {err}" + (f"; continue with: {mpi}granfe restart {out}"
@@ -189,16 +183,6 @@ def _execute(scene, out: Path, comm, args, meta: dict, checkpoint: Path | None =
         return RUN_FAILED
     _say(comm, f"granfe: outputs in {out}", err=False)
     return 0
-
-
-def _penetration(scene, out, comm, args, meta, checkpoint, stop) -> None:
-    from coupling.penetration_run import run_penetration
-
-    o = scene.output
-    run_penetration(scene.parameters(), out, comm, frames=o.frames, fields=o.fields,
-                    particles=o.particles, png=o.png, progress=not args.no_progress,
-                    checkpoint_every=o.checkpoint_every, restart=checkpoint is not None,
-                    moving=scene.moving_parameters(), checkpoint=checkpoint, stop=stop, meta=meta)
 
 
 if __name__ == "__main__":

@@ -228,3 +228,13 @@ def _picture(cpt, path):
     reach = 1.5 * (prm.window_half_width + prm.ghost_width * d)
     render_png(cpt.problem, path, "u_magnitude", warp=0, overlay=overlay,
                box=(-reach, reach, -reach, 0.0, min(s - 1.5 * prm.window_depth, low), s + 0.01), title=title)
+
+
+def execute(scene, out, comm, *, progress: bool = True, checkpoint=None, stop=None,
+            meta: dict | None = None) -> None:
+    """The ``penetration`` application's run (its row in :mod:`coupling.applications`)."""
+    o = scene.output
+    run_penetration(scene.parameters(), out, comm, frames=o.frames, fields=o.fields,
+                    particles=o.particles, png=o.png, progress=progress,
+                    checkpoint_every=o.checkpoint_every, restart=checkpoint is not None,
+                    moving=scene.moving_parameters(), checkpoint=checkpoint, stop=stop, meta=meta)

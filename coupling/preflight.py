@@ -33,12 +33,12 @@ def machine_memory_mb() -> float:
 def preflight(scene, ranks: int = 1) -> dict:
     """Sizes, estimates and warnings of ``scene`` run on ``ranks`` MPI ranks of this machine;
     raises :class:`SceneError` naming the key of anything the run would refuse later."""
-    from coupling.runner import summarise
+    from coupling.applications import application
 
-    info = summarise(scene, ranks)
-    warnings = []
-    if scene.scene.kind == "penetration":
-        warnings += _penetration_checks(scene, info)
+    app = application(scene.scene.kind)
+    info = app.load("summarise")(scene, ranks)
+    checks = app.load("checks")
+    warnings = checks(scene, info) if checks is not None else []
     total = info["memory_estimate_MB_per_rank"] * ranks
     available = machine_memory_mb()
     info["machine_memory_MB"] = round(available, 0)
@@ -58,7 +58,8 @@ def preflight(scene, ranks: int = 1) -> dict:
     return info
 
 
-def _penetration_checks(scene, info) -> list[str]:
+def penetration_checks(scene, info) -> list[str]:
+    """Push velocity against the DEM time step (refused by key), gravity and cone warnings."""
     from coupling.penetration import check_push
 
     prm = scene.parameters()

@@ -21,10 +21,6 @@ __all__ = ["RUN_FILE", "RunDirError", "fingerprint", "differences", "claim", "co
 
 RUN_FILE = "run.json"
 
-# section.key prefixes a restart may change, per scene kind
-RESTART_MUTABLE = {"bonded_punch": ("scene.name", "output.", "solver.", "penetrator.steps"),
-                   "penetration": ("scene.name", "output.")}
-
 # what marks a directory as holding a run (besides run.json: scene.toml and one of these, the
 # outputs of runs from before run.json)
 _RUN_MARKS = ("checkpoint", "checkpoint.prev", "history.json", "results.json", "last_good")
@@ -47,8 +43,9 @@ def code_version() -> str:
 def fingerprint(scene, ranks: int) -> dict:
     """The values of ``scene`` that a restart must keep, their sha256 with the code version
     and the rank count."""
-    kind = scene.scene.kind
-    mutable = RESTART_MUTABLE.get(kind, ())
+    from coupling.applications import application
+
+    mutable = application(scene.scene.kind).restart_mutable
     values = {f"{s}.{k}": v for s, table in scene.to_dict().items() for k, v in table.items()
               if not f"{s}.{k}".startswith(mutable)}
     version = code_version()

@@ -30,7 +30,7 @@ from coupling.scene import Scene, load_scene
 from coupling.staggered import InterfaceDidNotConverge, StaggeredOptions
 from granfe.solvers import SolveDidNotConverge
 
-__all__ = ["run_scene", "restart_scene", "summarise", "RunStopped"]
+__all__ = ["run_scene", "restart_scene", "execute", "summarise_punch", "summarise_penetration", "RunStopped"]
 
 
 class RunStopped(RuntimeError):
@@ -56,7 +56,9 @@ def _write_particles(out: Path, step: int, t: float, x, u, theta, kinds, series:
         f"{entries}\n  </Collection>\n</VTKFile>\n")
 
 
-def _summarise_penetration(scene, ranks: int = 1) -> dict:
+def summarise_penetration(scene, ranks: int = 1) -> dict:
+    """Sizes and cost estimates of a ``penetration`` scene (see
+    :func:`coupling.applications.summarise`)."""
     from coupling.penetration import contact_material, dem_time_step
 
     prm = scene.parameters()
@@ -126,11 +128,9 @@ def _memory_mb(particles: float, dofs: float) -> float:
     return round(550.0 + 0.024 * particles + 0.0025 * dofs, 0)
 
 
-def summarise(scene, ranks: int = 1) -> dict:
-    """Sizes and cost estimates on ``ranks`` MPI ranks without building FE objects (for
-    ``granfe check``; :func:`coupling.preflight.preflight` adds the checks)."""
-    if scene.scene.kind == "penetration":
-        return _summarise_penetration(scene, ranks)
+def summarise_punch(scene, ranks: int = 1) -> dict:
+    """Sizes and cost estimates of a ``bonded_punch`` scene (see
+    :func:`coupling.applications.summarise`)."""
     g, p, w = scene.geometry, scene.particles, scene.window
     d = 2 * p.radius
     grains_block = (g.width / d) * (g.height / (d * np.sqrt(3) / 2))
@@ -334,3 +334,12 @@ def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
         return json.loads((out / "history.json").read_text())
     return run_scene(scene, out, comm, progress, start_step=step, checkpoint=checkpoint, stop=stop,
                      meta=meta)
+
+
+def execute(scene, out, comm, *, progress: bool = True, checkpoint=None, stop=None,
+            meta: dict | None = None) -> None:
+    """The ``bonded_punch`` application's run (its row in :mod:`coupling.applications`)."""
+    if checkpoint is not None:
+        restart_scene(out, comm, progress=progress, checkpoint=checkpoint, stop=stop, meta=meta)
+    else:
+        run_scene(scene, out, comm, progress=progress, stop=stop, meta=meta)

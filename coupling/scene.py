@@ -15,9 +15,11 @@ import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+from coupling.applications import APPLICATIONS, application
+
 __all__ = ["SceneError", "Scene", "load_scene", "parse_overrides", "KINDS"]
 
-KINDS = ("bonded_punch", "penetration")
+KINDS = tuple(APPLICATIONS)
 
 
 class SceneError(ValueError):
@@ -47,7 +49,7 @@ class SceneInfo:
                              f"got {self.name!r}")
         if self.kind not in KINDS:
             raise SceneError(f"scene.kind must be one of {list(KINDS)}, got {self.kind!r}")
-        allowed = (2, 3) if self.kind == "penetration" else (2,)
+        allowed = APPLICATIONS[self.kind].dimensions
         if self.dimension not in allowed:
             raise SceneError(f"scene.dimension must be one of {list(allowed)} for kind {self.kind!r}, "
                              f"got {self.dimension!r}")
@@ -491,9 +493,6 @@ def _toml_string(s: str) -> str:
     return '"' + "".join(out) + '"'
 
 
-SCHEMAS = {"bonded_punch": Scene, "penetration": PenetrationScene}
-
-
 def _coerce(section: str, key: str, value, expected_type):
     if expected_type is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
@@ -507,10 +506,13 @@ def _coerce(section: str, key: str, value, expected_type):
 
 
 def _build(data: dict):
-    kind = data.get("scene", {}).get("kind", "bonded_punch") if isinstance(data.get("scene"), dict) else "bonded_punch"
-    if kind not in SCHEMAS:
-        raise SceneError(f"scene.kind must be one of {list(SCHEMAS)}, got {kind!r}")
-    schema = SCHEMAS[kind]
+    info = data.get("scene")
+    kind = info.get("kind", "bonded_punch") if isinstance(info, dict) else "bonded_punch"
+    try:
+        app = application(kind)
+    except ValueError as err:
+        raise SceneError(str(err)) from None
+    schema = app.load("scene")
     _SECTIONS = {f.name: type(f.default_factory()) for f in fields(schema)}
     sections = {}
     for name, values in data.items():
@@ -525,8 +527,8 @@ def _build(data: dict):
             if key not in types:
                 raise SceneError(f"unknown key {name}.{key}; known keys of [{name}]: {sorted(types)}")
         kwargs = {k: _coerce(name, k, v, types[k]) for k, v in values.items()}
-        if name == "scene" and kind == "penetration":
-            kwargs.setdefault("name", "cpt_2d")
+        if name == "scene":
+            kwargs.setdefault("name", app.default_name)
         sections[name] = cls(**kwargs)
     return schema(**sections)
 

@@ -84,3 +84,24 @@ def test_3d_penetration_scenes_load_and_name_errors():
         load_scene("scenes/cpt_3d.toml", parse_overrides(["chamber.width=0.12"]))
     with pytest.raises(SceneError, match=r"output.checkpoint_every must be >= 0"):
         load_scene("scenes/cpt_3d.toml", parse_overrides(["output.checkpoint_every=-2"]))
+
+
+def test_scene_defaults_are_the_parameters_defaults():
+    """Each scene key that maps to a field of PenetrationParameters or MovingWindowParameters
+    has that field's default (a default stated twice must not disagree)."""
+    from coupling.moving_window import MovingWindowParameters
+    from coupling.penetration import PenetrationParameters
+    from coupling.scene import _FOLLOW_KEYS, _PENETRATION_KEYS, PenetrationScene
+
+    scene = PenetrationScene()
+    for params, keys in ((PenetrationParameters(), _PENETRATION_KEYS),
+                         (MovingWindowParameters(), _FOLLOW_KEYS)):
+        for name, key in keys.items():
+            if key == "penetrator.depth" and isinstance(params, MovingWindowParameters):
+                continue          # the follow run's total depth is the penetrator's
+            section, field = key.split(".")
+            value = getattr(getattr(scene, section), field)
+            expected = getattr(params, name)
+            if name == "max_height":
+                expected = 0.0 if expected is None else expected   # 0 in a scene means None
+            assert value == expected, f"{key} = {value!r} in the scene, {name} = {expected!r}"

@@ -176,7 +176,7 @@ def test_3d_dof_estimate_matches_the_mesh():
 
     import numpy as np
 
-    from coupling.runner import summarise
+    from coupling.applications import summarise
     from coupling.scene import load_scene, parse_overrides
     from meshes.penetration import build_chamber
 
