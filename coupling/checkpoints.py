@@ -50,19 +50,42 @@ def write_checkpoint(base, step: int, comm, write_files, meta: dict | None = Non
     ``write_files(directory) -> list[str]`` writes this rank's files into ``directory`` and
     returns their names. ``meta`` (JSON) goes into the manifest. The previous checkpoint is
     kept as ``<base>.prev`` until the new one is complete and in place.
+
+    A write that fails on any rank (a full disk, a quota) fails on every rank: the partial
+    ``<base>.tmp-<step>`` is removed, the checkpoints already there are untouched, and
+    :class:`CheckpointError` names the error and the checkpoint that is kept.
     """
     base = Path(base)
     tmp = base.parent / f"{base.name}.tmp-{step:06d}"
+    error = None
     if comm.rank == 0:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir(parents=True)
-    comm.barrier()
-    names = write_files(tmp)
+        try:
+            if tmp.exists():
+                shutil.rmtree(tmp)
+            tmp.mkdir(parents=True)
+        except OSError as err:
+            error = err
+    if comm.bcast(error is not None, root=0):
+        raise CheckpointError(f"could not write the checkpoint of step {step} in {tmp.parent}: "
+                              f"{comm.bcast(str(error), root=0)}")
     digests = {}
-    for name in names:
-        _fsync(tmp / name)
-        digests[name] = _sha256(tmp / name)
+    try:
+        for name in write_files(tmp):
+            _fsync(tmp / name)
+            digests[name] = _sha256(tmp / name)
+    except OSError as err:
+        error = err
+    errors = [e for e in comm.allgather(None if error is None else str(error)) if e]
+    if errors:
+        comm.barrier()
+        if comm.rank == 0:
+            shutil.rmtree(tmp, ignore_errors=True)
+        kept = validate(base)[0] if comm.rank == 0 else None
+        kept = comm.bcast(kept, root=0)
+        raise CheckpointError(
+            f"could not write the checkpoint of step {step} in {tmp.parent}: {errors[0]}; "
+            + (f"the checkpoint of step {kept['step']} in {base} is kept" if kept
+               else "no earlier checkpoint exists"))
     gathered = comm.gather(digests, root=0)
     if comm.rank == 0:
         files = {k: v for d in gathered for k, v in d.items()}

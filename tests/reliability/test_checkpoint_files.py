@@ -84,3 +84,31 @@ def test_a_signal_on_one_rank_stops_every_rank():
             os.kill(os.getpid(), signal.SIGTERM)
         assert stop.requested(comm) == signal.SIGTERM
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+@pytest.mark.mpi
+def test_a_full_disk_keeps_the_previous_checkpoint(tmp_out):
+    """A write that fails on one rank (ENOSPC after part of a file) fails on every rank,
+    leaves no partial directory and keeps the checkpoint already there."""
+    import errno
+
+    comm = MPI.COMM_WORLD
+    base = Path(tmp_out) / "checkpoint"
+    write_checkpoint(base, 1, comm, _writer(1))
+
+    def full_disk(tmp: Path) -> list[str]:
+        names = _writer(2)(tmp)
+        if comm.rank == comm.size - 1:
+            with open(tmp / names[0], "ab") as f:
+                f.write(b"partial")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return names
+
+    with pytest.raises(CheckpointError, match=r"No space left on device; the checkpoint of step 1 .* is kept"):
+        write_checkpoint(base, 2, comm, full_disk)
+    comm.barrier()
+    if comm.rank == 0:
+        assert validate(base)[0]["step"] == 1
+        assert not list(base.parent.glob("checkpoint.tmp-*"))
+        assert find_checkpoint(base)[1]["step"] == 1
+    comm.barrier()
