@@ -65,7 +65,7 @@ def dem_phase_worker(path: Path):
 
     from mpi4py import MPI
 
-    from coupling.penetration import VERTICAL, CoupledPenetration
+    from coupling.apps.penetration.coupled import VERTICAL, CoupledPenetration
     from coupling.scene import load_scene
     from coupling.substep import GhostMotion, sub_cycle
 
@@ -78,7 +78,7 @@ def dem_phase_worker(path: Path):
     cpt.run(steps=2)  # compiles everything once
 
     def python_loop():
-        """The coupled runs' DEM phase before the fused step (coupling/penetration.py)."""
+        """The coupled runs' DEM phase before the fused step (coupling/apps/penetration/coupled.py)."""
         p, g = sim.p, cpt.ghost_local
         g_prev, g_next = cpt.g_prev, cpt.interface.ghost_motion()
         down = np.eye(3)[VERTICAL[prm.dim]]

@@ -42,7 +42,7 @@ from mpi4py import MPI
 
 import numpy as np
 
-from coupling.penetration import CoupledPenetration, DemPenetration, PenetrationParameters
+from coupling.apps.penetration.coupled import CoupledPenetration, DemPenetration, PenetrationParameters
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -49,8 +49,8 @@ def run_case(name: str, seed: int) -> dict:
     import dolfinx_solver  # noqa: F401
     from mpi4py import MPI
 
-    from coupling.moving_window import MovingWindowParameters, MovingWindowPenetration
-    from coupling.penetration import CouplingUnstable, PenetrationParameters
+    from coupling.apps.penetration.coupled import CouplingUnstable, PenetrationParameters
+    from coupling.apps.penetration.moving_window import MovingWindowParameters, MovingWindowPenetration
 
     case = CASES[name]
     # the demo's scene; relaxation 0.15: at 0.3 the exchange went unstable after the window's

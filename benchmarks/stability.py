@@ -27,8 +27,8 @@ from mpi4py import MPI
 
 import numpy as np
 
-from coupling.penetration import PenetrationParameters
-from coupling.penetration_run import run_penetration
+from coupling.apps.penetration.coupled import PenetrationParameters
+from coupling.apps.penetration.run import run_penetration
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -52,13 +52,14 @@ class Application:
 APPLICATIONS: dict[str, Application] = {
     "bonded_punch": Application(
         kind="bonded_punch", dimensions=(2,), default_name="scene",
-        scene="coupling.scene:Scene", summarise="coupling.runner:summarise_punch",
-        run="coupling.runner:execute",
+        scene="coupling.apps.punch.scene:Scene", summarise="coupling.apps.punch.run:summarise_punch",
+        run="coupling.apps.punch.run:execute",
         restart_mutable=("scene.name", "output.", "solver.", "penetrator.steps")),
     "penetration": Application(
         kind="penetration", dimensions=(2, 3), default_name="cpt_2d",
-        scene="coupling.scene:PenetrationScene", summarise="coupling.runner:summarise_penetration",
-        run="coupling.penetration_run:execute", checks="coupling.preflight:penetration_checks"),
+        scene="coupling.apps.penetration.scene:PenetrationScene",
+        summarise="coupling.apps.penetration.run:summarise_penetration",
+        run="coupling.apps.penetration.run:execute", checks="coupling.apps.penetration.run:penetration_checks"),
 }
 
 

@@ -166,7 +166,6 @@ def _execute(scene, out: Path, comm, args, meta: dict, checkpoint: Path | None =
     """Run (or continue from ``checkpoint``) with SIGINT / SIGTERM stopping after a step."""
     from coupling.applications import application
     from coupling.interrupts import Interrupted, StopRequests
-    from coupling.runner import RunStopped
 
     try:
         with StopRequests(quiet=comm.rank != 0) as stop:
@@ -178,7 +177,7 @@ def _execute(scene, out: Path, comm, args, meta: dict, checkpoint: Path | None =
         _say(comm, f"granfe: {err}" + (f"; continue with: {mpi}granfe restart {out}"
                                        if err.checkpoint is not None else ""))
         return err.exit_code
-    except (RunStopped, RuntimeError, FileNotFoundError) as err:
+    except (RuntimeError, FileNotFoundError) as err:   # RunStopped, CheckpointError are RuntimeErrors
         _say(comm, f"granfe: {err}")
         return RUN_FAILED
     _say(comm, f"granfe: outputs in {out}", err=False)

@@ -73,7 +73,7 @@ class Ball:
 
 @dataclass(frozen=True)
 class Union:
-    """The union of boxes (a window with a chimney, :mod:`coupling.moving_window`).
+    """The union of boxes (a window with a chimney, :mod:`coupling.apps.penetration.moving_window`).
 
     ``signed_distance`` is the smallest of the members': exact outside, and inside it is
     the depth below the nearest member's surface, so a point where two boxes meet counts as

@@ -70,3 +70,25 @@ def test_the_layer_check_can_fail(tmp_path):
     bad = tmp_path / "x.py"
     bad.write_text("def f():\n    from dolfinx import fem\n")
     assert "dolfinx" in imports(bad)
+
+
+SERVING = {"scene", "cli", "preflight", "rundir", "checkpoints", "interrupts", "applications"}
+
+
+@pytest.mark.parametrize("path", [p for p in modules("coupling") if p.stem in SERVING
+                                  and p.parent.name == "coupling"],
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_what_serves_the_applications_names_none(path):
+    """Scenes, the command line and checks reach an application only through the table of
+    coupling.applications (as strings), never by import."""
+    bad = {m for m in imports(path) if m.startswith("coupling.apps")}
+    assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "coupling" / "apps").rglob("*.py")),
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_applications_do_not_import_each_other(path):
+    own = path.relative_to(ROOT / "coupling" / "apps").parts[0]
+    bad = {m for m in imports(path)
+           if m.startswith("coupling.apps.") and m.split(".")[2] != own}
+    assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"

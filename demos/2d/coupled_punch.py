@@ -29,7 +29,7 @@ from mpi4py import MPI
 import numpy as np
 from dolfinx import fem
 
-from coupling.punch import coupled_window, fe_block, lattice_block
+from coupling.apps.punch.model import coupled_window, fe_block, lattice_block
 from coupling.staggered import StaggeredOptions
 from dem.bonded import BondedAssembly, BondedSubproblem, find_bonds
 from granfe.probe import probe

@@ -25,8 +25,8 @@ from mpi4py import MPI
 
 import numpy as np
 
-from coupling.penetration import PenetrationParameters
-from coupling.penetration_run import run_penetration
+from coupling.apps.penetration.coupled import PenetrationParameters
+from coupling.apps.penetration.run import run_penetration
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
 
@@ -54,7 +54,7 @@ prm = PenetrationParameters(depth=args.depth, velocity=args.velocity, cone_radiu
                             radius=args.radius, friction=args.friction, kn=args.kn,
                             relaxation=args.relaxation)
 
-# ---- set-up, run and outputs (settle, mesh, couple, push; see coupling.penetration) -----------
+# ---- set-up, run and outputs (settle, mesh, couple, push; see coupling.apps.penetration.coupled) -----------
 results = run_penetration(prm, args.out, comm, frames=args.frames, progress=False, log=log)
 history = results["history"]
 for h in history[:: max(1, len(history) // args.frames)]:

@@ -41,8 +41,8 @@ from mpi4py import MPI
 
 import numpy as np
 
-from coupling.moving_window import MovingWindowParameters, MovingWindowPenetration
-from coupling.penetration import CouplingUnstable, PenetrationParameters
+from coupling.apps.penetration.coupled import CouplingUnstable, PenetrationParameters
+from coupling.apps.penetration.moving_window import MovingWindowParameters, MovingWindowPenetration
 
 # ---- parameters (SI, per unit thickness) ------------------------------------------------------
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])

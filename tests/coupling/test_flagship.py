@@ -20,8 +20,8 @@ import pytest
 import ufl
 from dolfinx import fem
 
-from coupling.penetration import CoupledPenetration, DemPenetration, PenetrationParameters
-from coupling.punch import fe_block, lattice_block
+from coupling.apps.penetration.coupled import CoupledPenetration, DemPenetration, PenetrationParameters
+from coupling.apps.punch.model import fe_block, lattice_block
 from coupling.regions import Box, CouplingRegions
 from coupling.staggered import StaggeredCoupling, StaggeredOptions
 from dem.bonded import BondedAssembly, BondedSubproblem, find_bonds
@@ -42,7 +42,7 @@ def _block():
 
 
 def _loaded_block(comm, block, prefix):
-    """The FE block of :func:`coupling.punch.fe_block` under the pressure hump."""
+    """The FE block of :func:`coupling.apps.punch.model.fe_block` under the pressure hump."""
     problem = fe_block(comm, block, H_FE, degree=(2, 2), prefix=prefix)
     xs = ufl.SpatialCoordinate(problem.domain)
     hump = P0 * ufl.exp(-(((xs[0] - block.centre) / W) ** 2))

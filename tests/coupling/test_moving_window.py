@@ -8,7 +8,8 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from coupling.moving_window import (
+from coupling.apps.penetration.coupled import PenetrationParameters
+from coupling.apps.penetration.moving_window import (
     MovingWindowParameters,
     MovingWindowPenetration,
     lattice_fill,
@@ -16,7 +17,6 @@ from coupling.moving_window import (
     push_apart,
     tip_near_bottom,
 )
-from coupling.penetration import PenetrationParameters
 from coupling.regions import Box, Union
 from dem import GHOST, build_pairs
 

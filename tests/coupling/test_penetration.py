@@ -7,7 +7,7 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
-from coupling.penetration import CoupledPenetration, PenetrationParameters
+from coupling.apps.penetration.coupled import CoupledPenetration, PenetrationParameters
 
 # a few hundred spheres, a coarse mesh: the scene of scenes/cpt_3d.toml at toy size
 TINY = dict(dim=3, chamber_width=0.14, chamber_depth=0.08, window_half_width=0.02, window_depth=0.04,
@@ -94,7 +94,7 @@ SMALL_2D = dict(settle_time=0.08, depth=0.008, chamber_width=0.2, chamber_depth=
 def test_too_fast_a_push_stops_with_its_last_state(tmp_path):
     """A cone moving more than 0.05 grain radius per DEM step is refused by name, and the
     settled state is kept (benchmarks/stability.py maps where that happens)."""
-    from coupling.penetration_run import run_penetration
+    from coupling.apps.penetration.run import run_penetration
 
     comm = MPI.COMM_WORLD
     out = comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0)
@@ -114,7 +114,7 @@ def test_time_step_past_critical_is_refused():
 def test_failed_set_up_keeps_the_settled_grains(tmp_path):
     """Too short a settle leaves no load-bearing packing: the set-up stops naming the key,
     and the grains computed so far are written."""
-    from coupling.penetration_run import run_penetration
+    from coupling.apps.penetration.run import run_penetration
 
     comm = MPI.COMM_WORLD
     out = comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0)

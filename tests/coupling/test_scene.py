@@ -2,7 +2,8 @@
 
 import pytest
 
-from coupling.scene import Scene, SceneError, load_scene, parse_overrides
+from coupling.apps.punch.scene import Scene
+from coupling.scene import SceneError, load_scene, parse_overrides
 
 
 def write(tmp_path, text):
@@ -53,7 +54,7 @@ def test_missing_file(tmp_path):
 
 
 def test_penetration_scene_defaults_and_named_errors(tmp_path):
-    from coupling.scene import PenetrationScene
+    from coupling.apps.penetration.scene import PenetrationScene
 
     scene = load_scene("scenes/cpt_2d.toml")
     assert isinstance(scene, PenetrationScene)
@@ -89,9 +90,9 @@ def test_3d_penetration_scenes_load_and_name_errors():
 def test_scene_defaults_are_the_parameters_defaults():
     """Each scene key that maps to a field of PenetrationParameters or MovingWindowParameters
     has that field's default (a default stated twice must not disagree)."""
-    from coupling.moving_window import MovingWindowParameters
-    from coupling.penetration import PenetrationParameters
-    from coupling.scene import _FOLLOW_KEYS, _PENETRATION_KEYS, PenetrationScene
+    from coupling.apps.penetration.coupled import PenetrationParameters
+    from coupling.apps.penetration.moving_window import MovingWindowParameters
+    from coupling.apps.penetration.scene import _FOLLOW_KEYS, _PENETRATION_KEYS, PenetrationScene
 
     scene = PenetrationScene()
     for params, keys in ((PenetrationParameters(), _PENETRATION_KEYS),

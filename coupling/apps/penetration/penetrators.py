@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from coupling.penetration import PenetrationParameters
+    from coupling.apps.penetration.coupled import PenetrationParameters
 
 __all__ = ["cone_clump", "penetrator_clump", "tip_height"]
 

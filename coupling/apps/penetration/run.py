@@ -14,7 +14,8 @@ import dolfinx_solver  # noqa: F401
 
 import numpy as np
 
-from coupling.penetration import VERTICAL, CoupledPenetration, PenetrationParameters
+from coupling.apps.penetration.coupled import VERTICAL, CoupledPenetration, PenetrationParameters
+from coupling.preflight import memory_mb
 
 __all__ = ["run_penetration"]
 
@@ -30,15 +31,15 @@ def run_penetration(  # noqa: C901 (the next to split: one runner for every appl
     ``checkpoint_every`` > 0 writes ``out/checkpoint`` every that many FE steps (not after the
     last); ``restart`` continues from it (same parameters and rank count) instead of settling,
     writing frames as ``*_from<step>`` series next to the first run's. ``moving``
-    (:class:`coupling.moving_window.MovingWindowParameters`): the window follows the
+    (:class:`coupling.apps.penetration.moving_window.MovingWindowParameters`): the window follows the
     penetrator to ``moving.depth`` (no checkpoints); ``results.json`` then lists the moves.
     ``checkpoint``: the directory a restart continues from (default ``out/checkpoint``);
     ``meta`` goes into every checkpoint's manifest (the run's fingerprint). ``stop``
     (:class:`coupling.interrupts.StopRequests`): after an FE step on which a signal arrived,
     write a checkpoint and raise :class:`coupling.interrupts.Interrupted`.
     """
+    from coupling.apps.penetration.coupled import CouplingUnstable
     from coupling.interrupts import Interrupted
-    from coupling.penetration import CouplingUnstable
     from dem.errors import BlowUpError, DemError
     from dem.io import ParticleWriter, save_state
     from granfe.io import ContinuumWriter
@@ -60,7 +61,7 @@ def run_penetration(  # noqa: C901 (the next to split: one runner for every appl
         if moving is None:
             cpt = CoupledPenetration(prm, comm, log=log, checkpoint=checkpoint if restart else None)
         else:
-            from coupling.moving_window import MovingWindowPenetration
+            from coupling.apps.penetration.moving_window import MovingWindowPenetration
             cpt = MovingWindowPenetration(prm, moving, comm, log=log)
     except (BlowUpError, DemError, FloatingPointError, ValueError) as err:
         if restart:   # the grains are the unsettled lattice: nothing worth keeping
@@ -238,3 +239,93 @@ def execute(scene, out, comm, *, progress: bool = True, checkpoint=None, stop=No
                     particles=o.particles, png=o.png, progress=progress,
                     checkpoint_every=o.checkpoint_every, restart=checkpoint is not None,
                     moving=scene.moving_parameters(), checkpoint=checkpoint, stop=stop, meta=meta)
+
+
+def summarise_penetration(scene, ranks: int = 1) -> dict:
+    """Sizes and cost estimates of a ``penetration`` scene (see
+    :func:`coupling.applications.summarise`)."""
+    from coupling.apps.penetration.coupled import contact_material, dem_time_step
+
+    prm = scene.parameters()
+    d = 2 * prm.radius
+    band = prm.ghost_width * d
+    dim = prm.dim
+    if dim == 2:
+        area = (2 * (prm.window_half_width + band)) * (prm.window_depth + band)
+        grains = area / (np.sqrt(3) / 2 * d * d)
+    else:  # fcc with a gap of 2 % of a diameter (coupling.apps.penetration.coupled.grain_lattice)
+        volume = (2 * (prm.window_half_width + band)) ** 2 * (prm.window_depth + band)
+        grains = volume * 0.74 / 1.02**3 / (np.pi / 6 * d**3)
+    from dem import Particles, critical_dt
+    from dem.timestep import DEFAULT_SAFETY
+
+    r_min = np.array([prm.radius * (1 - prm.jitter)])
+    dt = dem_time_step(prm, r_min)
+    if dt is None:
+        # the DEM's default step counts every disk, the cone's (half a grain radius) too
+        r_min = np.minimum(r_min, 0.5 * prm.radius)
+        probe = Particles.spheres(np.zeros((1, 3)), r_min, prm.density, dim=2)
+        dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [contact_material(prm)])  # the DEM's default
+    # the size field ramps from fine to coarse over about the window size again
+    hw, hf = prm.element_size_window, prm.element_size_far
+    if dim == 2:   # 0.87-0.91 of the gmsh meshes' nodes without the factor 1.1
+        window_cells = 4 * (2 * (prm.window_half_width + band) * (prm.window_depth + band)) / hw**2
+        far_cells = 2 * prm.chamber_width * prm.chamber_depth / hf**2
+        nodes = 1.1 * (window_cells + far_cells) / 2
+        fine = window_cells > far_cells
+    else:
+        # fitted to 9 gmsh chambers (h_window 4-10 mm, h_far 2-8 cm; within 3 %): the refined
+        # cylinder's volume and surface in h_window, the chamber's volume in h_far
+        rw, dw = np.sqrt(2) * (prm.window_half_width + band), prm.window_depth + band
+        surface = np.pi * rw**2 + 2 * np.pi * rw * dw
+        window = 0.97 * np.pi * rw**2 * dw / hw**3 + 1.66 * surface / hw**2
+        far = 0.68 * np.pi * prm.chamber_width**2 / 4 * prm.chamber_depth / hf**3
+        nodes, fine = window + far, window > far
+    dofs = (3 if dim == 2 else 6) * nodes
+    depth = scene.penetrator.depth   # the whole push (more than prm.depth if the window follows)
+    out = {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
+           "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
+           "dem_steps_estimate": int((prm.settle_time + depth / prm.velocity) / dt),
+           "fe_steps": int(np.ceil(depth / prm.velocity / (prm.substeps * dt))),
+           "memory_estimate_MB_per_rank": memory_mb(1.25 * grains, dofs / ranks)}
+    fe_heavy = 0.0025 * dofs / ranks > 0.024 * 1.25 * grains
+    out["memory_driver"] = (("chamber.element_size_window" if fine else "chamber.element_size_far")
+                            if fe_heavy else "grains.radius")
+    mv = scene.moving_parameters()
+    if mv is not None:
+        # each move adds ``step`` diameters of window depth (fewer once it travels)
+        tip_room = prm.window_depth - mv.trigger * d
+        moves = max(0, int(np.ceil((depth - tip_room) / (mv.step * d))))
+        out.update(window_follows=True, window_moves_estimate=moves,
+                   dem_steps_estimate=out["dem_steps_estimate"] + moves * mv.settle_steps)
+    from coupling.preflight import run_time_s
+
+    out["run_time_estimate_s"] = round(run_time_s(dim, 1.25 * grains, out["dem_steps_estimate"],
+                                                  out["fe_steps"], dofs, ranks), 0)
+    return out
+
+
+def penetration_checks(scene, info) -> list[str]:
+    """Push velocity against the DEM time step (refused by key), gravity and cone warnings."""
+    from coupling.apps.penetration.coupled import check_push
+    from coupling.scene import SceneError
+
+    prm = scene.parameters()
+    try:
+        check_push(prm, info["dem_time_step_estimate_s"])
+    except ValueError as err:
+        raise SceneError(f"penetrator.{err}") from None
+    warnings = []
+    g = scene.grains.gravity
+    if g < 0:
+        warnings.append(f"grains.gravity = {g} points up (the grains are pulled away from the "
+                        "chamber's base; gravity is the magnitude pointing down, e.g. 9.81)")
+    elif g == 0:
+        warnings.append("grains.gravity = 0: the grains do not settle into a load-bearing packing")
+    if scene.penetrator.shape == "cone" and scene.penetrator.apex_deg > 120:
+        warnings.append(f"penetrator.apex_deg = {scene.penetrator.apex_deg} is a nearly flat "
+                        "cone (the standard cone is 60 degrees)")
+    if info.get("run_time_estimate_s", 0) > 24 * 3600:
+        warnings.append(f"the run takes about {info['run_time_estimate_s'] / 3600:.0f} h by the "
+                        "rough estimate")
+    return warnings

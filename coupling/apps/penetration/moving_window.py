@@ -71,10 +71,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from coupling.interface import CouplingInterface
-from coupling.locate import owner_ranks
-from coupling.operators import FieldBasis
-from coupling.penetration import (
+from coupling.apps.penetration.coupled import (
     CoupledPenetration,
     CouplingUnstable,
     PenetrationParameters,
@@ -82,6 +79,9 @@ from coupling.penetration import (
     cone_record,
     penetrator_clump,
 )
+from coupling.interface import CouplingInterface
+from coupling.locate import owner_ranks
+from coupling.operators import FieldBasis
 from coupling.regions import Box, CouplingRegions, Union
 from coupling.substep import GhostMotion, sub_cycle
 from dem import GHOST, Particles, Simulation, build_pairs
@@ -388,7 +388,7 @@ class MovingWindowPenetration(CoupledPenetration):
         self.moving = moving   # before the parent's set-up: it sizes the mesh (_refined_depth)
         super().__init__(prm, comm, log=log)
         self._interface_bc = self.problem.bcs[-1]   # appended by the parent's interface
-        # where the initial window's lattice starts (coupling.penetration: window + band)
+        # where the initial window's lattice starts (coupling.apps.penetration.coupled: window + band)
         self._lattice_origin = np.array(self.regions.window.lo) - self.regions.ghost_width
         self.axis = self.sim.p.dim - 1
         self._wide, self._top0 = self.regions.window, self.regions.window.hi[self.axis]

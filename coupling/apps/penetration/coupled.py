@@ -59,8 +59,8 @@ import dolfinx_solver  # noqa: F401
 
 import numpy as np
 
+from coupling.apps.penetration.penetrators import cone_clump, penetrator_clump, tip_height
 from coupling.interface import CouplingInterface
-from coupling.penetrators import cone_clump, penetrator_clump, tip_height
 from coupling.regions import Box, CouplingRegions
 from coupling.substep import GhostMotion, sub_cycle
 from dem import GHOST, ContactMaterial, Particles, Simulation

@@ -25,12 +25,14 @@ from mpi4py import MPI
 
 import numpy as np
 
-from coupling.punch import coupled_window, fe_block, lattice_block
-from coupling.scene import Scene, load_scene
+from coupling.apps.punch.model import coupled_window, fe_block, lattice_block
+from coupling.apps.punch.scene import Scene
+from coupling.preflight import memory_mb
+from coupling.scene import load_scene
 from coupling.staggered import InterfaceDidNotConverge, StaggeredOptions
 from granfe.solvers import SolveDidNotConverge
 
-__all__ = ["run_scene", "restart_scene", "execute", "summarise_punch", "summarise_penetration", "RunStopped"]
+__all__ = ["run_scene", "restart_scene", "execute", "summarise_punch", "RunStopped"]
 
 
 class RunStopped(RuntimeError):
@@ -56,78 +58,6 @@ def _write_particles(out: Path, step: int, t: float, x, u, theta, kinds, series:
         f"{entries}\n  </Collection>\n</VTKFile>\n")
 
 
-def summarise_penetration(scene, ranks: int = 1) -> dict:
-    """Sizes and cost estimates of a ``penetration`` scene (see
-    :func:`coupling.applications.summarise`)."""
-    from coupling.penetration import contact_material, dem_time_step
-
-    prm = scene.parameters()
-    d = 2 * prm.radius
-    band = prm.ghost_width * d
-    dim = prm.dim
-    if dim == 2:
-        area = (2 * (prm.window_half_width + band)) * (prm.window_depth + band)
-        grains = area / (np.sqrt(3) / 2 * d * d)
-    else:  # fcc with a gap of 2 % of a diameter (coupling.penetration.grain_lattice)
-        volume = (2 * (prm.window_half_width + band)) ** 2 * (prm.window_depth + band)
-        grains = volume * 0.74 / 1.02**3 / (np.pi / 6 * d**3)
-    from dem import Particles, critical_dt
-    from dem.timestep import DEFAULT_SAFETY
-
-    r_min = np.array([prm.radius * (1 - prm.jitter)])
-    dt = dem_time_step(prm, r_min)
-    if dt is None:
-        # the DEM's default step counts every disk, the cone's (half a grain radius) too
-        r_min = np.minimum(r_min, 0.5 * prm.radius)
-        probe = Particles.spheres(np.zeros((1, 3)), r_min, prm.density, dim=2)
-        dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [contact_material(prm)])  # the DEM's default
-    # the size field ramps from fine to coarse over about the window size again
-    hw, hf = prm.element_size_window, prm.element_size_far
-    if dim == 2:   # 0.87-0.91 of the gmsh meshes' nodes without the factor 1.1
-        window_cells = 4 * (2 * (prm.window_half_width + band) * (prm.window_depth + band)) / hw**2
-        far_cells = 2 * prm.chamber_width * prm.chamber_depth / hf**2
-        nodes = 1.1 * (window_cells + far_cells) / 2
-        fine = window_cells > far_cells
-    else:
-        # fitted to 9 gmsh chambers (h_window 4-10 mm, h_far 2-8 cm; within 3 %): the refined
-        # cylinder's volume and surface in h_window, the chamber's volume in h_far
-        rw, dw = np.sqrt(2) * (prm.window_half_width + band), prm.window_depth + band
-        surface = np.pi * rw**2 + 2 * np.pi * rw * dw
-        window = 0.97 * np.pi * rw**2 * dw / hw**3 + 1.66 * surface / hw**2
-        far = 0.68 * np.pi * prm.chamber_width**2 / 4 * prm.chamber_depth / hf**3
-        nodes, fine = window + far, window > far
-    dofs = (3 if dim == 2 else 6) * nodes
-    depth = scene.penetrator.depth   # the whole push (more than prm.depth if the window follows)
-    out = {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
-           "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
-           "dem_steps_estimate": int((prm.settle_time + depth / prm.velocity) / dt),
-           "fe_steps": int(np.ceil(depth / prm.velocity / (prm.substeps * dt))),
-           "memory_estimate_MB_per_rank": _memory_mb(1.25 * grains, dofs / ranks)}
-    fe_heavy = 0.0025 * dofs / ranks > 0.024 * 1.25 * grains
-    out["memory_driver"] = (("chamber.element_size_window" if fine else "chamber.element_size_far")
-                            if fe_heavy else "grains.radius")
-    mv = scene.moving_parameters()
-    if mv is not None:
-        # each move adds ``step`` diameters of window depth (fewer once it travels)
-        tip_room = prm.window_depth - mv.trigger * d
-        moves = max(0, int(np.ceil((depth - tip_room) / (mv.step * d))))
-        out.update(window_follows=True, window_moves_estimate=moves,
-                   dem_steps_estimate=out["dem_steps_estimate"] + moves * mv.settle_steps)
-    from coupling.preflight import run_time_s
-
-    out["run_time_estimate_s"] = round(run_time_s(dim, 1.25 * grains, out["dem_steps_estimate"],
-                                                  out["fe_steps"], dofs, ranks), 0)
-    return out
-
-
-def _memory_mb(particles: float, dofs: float) -> float:
-    """Peak resident memory of one rank [MB], calibrated on this code (ru_maxrss of 3D
-    penetration runs, 2026-12): ~550 MB of interpreter, dolfinx, PETSc and numba-compiled
-    kernels, ~24 kB per particle (replicated on every rank: state, neighbour candidates with
-    history, coupling operators) and ~2.5 kB per FE dof (matrix and LU fill)."""
-    return round(550.0 + 0.024 * particles + 0.0025 * dofs, 0)
-
-
 def summarise_punch(scene, ranks: int = 1) -> dict:
     """Sizes and cost estimates of a ``bonded_punch`` scene (see
     :func:`coupling.applications.summarise`)."""
@@ -148,7 +78,7 @@ def summarise_punch(scene, ranks: int = 1) -> dict:
         "grains_in_window_and_ghost_band": int(grains_window),
         "grains_if_all_dem": int(grains_block),
         "load_steps": scene.penetrator.steps,
-        "memory_estimate_MB_per_rank": _memory_mb(grains_window, dofs / ranks),
+        "memory_estimate_MB_per_rank": memory_mb(grains_window, dofs / ranks),
         "memory_driver": "geometry.element_size",
         "time_step": "quasi-static (no explicit time step)",
         # one sparse direct solve per staggered iteration, ~10 iterations per load step
@@ -325,7 +255,7 @@ def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
     scene = load_scene(out / "scene.toml")
     if scene.scene.kind != "bonded_punch":
         raise FileNotFoundError(f"restart_scene runs bonded_punch scenes; {scene.scene.kind!r} "
-                                "scenes restart through coupling.penetration_run.run_penetration")
+                                "scenes restart through coupling.apps.penetration.run.run_penetration")
     if step >= scene.penetrator.steps:
         if comm.rank == 0:
             print(f"granfe: the run in {out} is complete (step {step} of {scene.penetrator.steps}); "
