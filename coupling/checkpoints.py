@@ -18,14 +18,45 @@ import shutil
 import time
 from pathlib import Path
 
-__all__ = ["MANIFEST", "CheckpointError", "write_checkpoint", "validate", "find_checkpoint",
-           "set_aside_invalid"]
+__all__ = ["MANIFEST", "CheckpointError", "DiskFull", "ensure_free_space", "write_checkpoint",
+           "validate", "find_checkpoint", "set_aside_invalid"]
 
 MANIFEST = "manifest.json"
 
 
 class CheckpointError(RuntimeError):
     """No complete, valid checkpoint; the message lists what was found and why it was refused."""
+
+
+class DiskFull(RuntimeError):
+    """Too little free disk for the next output or checkpoint; nothing was written."""
+
+
+#: free space kept in reserve besides twice the last checkpoint [bytes]
+RESERVE = 64 * 2**20
+
+
+def ensure_free_space(out, comm, what: str = "output") -> None:
+    """Refuse (:class:`DiskFull`, on every rank) to write into ``out`` with less free disk
+    than twice its last checkpoint plus :data:`RESERVE`. Writers that run out of disk midway
+    (ADIOS2 aborts the process) never get the chance to, and the checkpoint already written
+    stays the one a restart continues from."""
+    out = Path(out)
+    message = None
+    if comm.rank == 0:
+        last = out / "checkpoint"
+        size = sum(f.stat().st_size for f in last.glob("*") if f.is_file()) if last.is_dir() else 0
+        need = 2 * size + RESERVE
+        free = shutil.disk_usage(out).free
+        if free < need:
+            kept = validate(last)[0]
+            message = (f"only {free / 2**20:.0f} MB free in {out}, the next {what} needs about "
+                       f"{need / 2**20:.0f} MB: free disk space, then "
+                       + (f"continue from the checkpoint of step {kept['step']} with "
+                          f"`granfe restart {out}`" if kept else "run again"))
+    message = comm.bcast(message, root=0)
+    if message:
+        raise DiskFull(message)
 
 
 def _sha256(path: Path) -> str:

@@ -112,3 +112,25 @@ def test_a_full_disk_keeps_the_previous_checkpoint(tmp_out):
         assert not list(base.parent.glob("checkpoint.tmp-*"))
         assert find_checkpoint(base)[1]["step"] == 1
     comm.barrier()
+
+
+def test_too_little_free_disk_is_refused_before_writing(tmp_out, monkeypatch):
+    """Outputs and checkpoints are not started with less free disk than twice the last
+    checkpoint plus a reserve (ADIOS2 would abort the process midway); the message says how
+    much is free and how to continue."""
+    import shutil
+    from collections import namedtuple
+
+    from coupling import checkpoints
+
+    comm = MPI.COMM_WORLD
+    base = Path(tmp_out) / "checkpoint"
+    write_checkpoint(base, 4, comm, _writer(4))
+    checkpoints.ensure_free_space(tmp_out, comm)           # a real disk has room
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 10**6, 10**6))
+    with pytest.raises(checkpoints.DiskFull,
+                       match=r"only 1 MB free .* the next frame needs about 64 MB: free disk "
+                             r"space, then continue from the checkpoint of step 4"):
+        checkpoints.ensure_free_space(tmp_out, comm, "frame")
+    assert validate(base)[0]["step"] == 4

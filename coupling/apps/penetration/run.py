@@ -15,6 +15,7 @@ import dolfinx_solver  # noqa: F401
 import numpy as np
 
 from coupling.apps.penetration.coupled import VERTICAL, CoupledPenetration, PenetrationParameters
+from coupling.checkpoints import ensure_free_space
 from coupling.preflight import memory_mb
 
 __all__ = ["run_penetration"]
@@ -101,9 +102,12 @@ def run_penetration(  # noqa: C901 (the next to split: one runner for every appl
                             step=f"{h['wall_time']:.2f} s")
             bar.update(1)
         saved = checkpoint_every and h["step"] % checkpoint_every == 0 and h["step"] != n_steps
+        frame = not (h["step"] % every and h["step"] != n_steps)
+        if saved or frame:
+            ensure_free_space(out, comm, "checkpoint" if saved else "frame")
         if saved:
             cpt.save_checkpoint(out / "checkpoint", meta=meta)
-        if not (h["step"] % every and h["step"] != n_steps):
+        if frame:
             if writer is not None:
                 writer.write(h["time"])
             if grains is not None:

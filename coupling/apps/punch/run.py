@@ -27,6 +27,7 @@ import numpy as np
 
 from coupling.apps.punch.model import coupled_window, fe_block, lattice_block
 from coupling.apps.punch.scene import Scene
+from coupling.checkpoints import ensure_free_space
 from coupling.preflight import memory_mb
 from coupling.scene import load_scene
 from coupling.staggered import InterfaceDidNotConverge, StaggeredOptions
@@ -170,6 +171,7 @@ def run_scene(  # noqa: C901 (the next to split: one runner for every applicatio
         history.append({"step": step + 1, "settlement": target, "punch_force": run.punch_force(),
                         "iterations": its, "wall_time_s": elapsed})
         if step % scene.output.every == 0 or step + 1 == pen.steps:
+            ensure_free_space(out, comm, "frame")
             if writer is not None:
                 writer.write(float(step + 1))
             if scene.output.particles and comm.rank == 0:
