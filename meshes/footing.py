@@ -16,6 +16,8 @@ from mpi4py import MPI
 import gmsh
 import numpy as np
 
+from meshes.distribute import on_rank0
+
 __all__ = ["strip_footing", "build"]
 
 
@@ -66,21 +68,4 @@ def strip_footing(model: gmsh.model, b: float, W: float, D: float, h_edge: float
 
 def build(comm: MPI.Comm, b: float, W: float, D: float, h_edge: float, h_far: float):
     """Mesh on ``comm`` (gmsh runs on rank 0): returns ``dolfinx.io.gmsh.MeshData``."""
-    from dolfinx.io import gmsh as gmshio
-
-    initialized = gmsh.isInitialized()
-    if not initialized:
-        gmsh.initialize()
-    gmsh.option.setNumber("General.Terminal", 0)
-    try:
-        if comm.rank == 0:
-            gmsh.model.add("strip_footing")
-            strip_footing(gmsh.model, b, W, D, h_edge, h_far)
-        comm.barrier()
-        data = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=2)
-    finally:
-        if comm.rank == 0:
-            gmsh.model.remove()
-        if not initialized:
-            gmsh.finalize()
-    return data
+    return on_rank0(comm, "strip_footing", lambda m: strip_footing(m, b, W, D, h_edge, h_far), 2)

@@ -23,6 +23,8 @@ from mpi4py import MPI
 import gmsh
 import numpy as np
 
+from meshes.distribute import on_rank0
+
 __all__ = ["chamber_2d", "chamber_3d", "build_chamber", "cone_penetrometer", "flat_pile",
            "STANDARD_CONE_RADIUS"]
 
@@ -146,30 +148,8 @@ def chamber_3d(model, radius: float, depth: float, window_radius: float, window_
 
 def build_chamber(comm: MPI.Comm, dim: int, **params):
     """Mesh a chamber on rank 0 and distribute it: returns ``dolfinx.io.gmsh.MeshData``."""
-    from dolfinx.io import gmsh as gmshio
-
-    initialized = gmsh.isInitialized()
-    if not initialized:
-        gmsh.initialize()
-    gmsh.option.setNumber("General.Terminal", 0)
-    error = None
-    try:
-        if comm.rank == 0:
-            gmsh.model.add(f"chamber_{dim}d")
-            try:
-                (chamber_2d if dim == 2 else chamber_3d)(gmsh.model, **params)
-            except Exception as err:  # tell every rank, do not leave them waiting
-                error = err
-        error = comm.bcast(error, root=0)
-        if error is not None:
-            raise error
-        data = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=dim)
-    finally:
-        if comm.rank == 0 and gmsh.model.list():
-            gmsh.model.remove()
-        if not initialized:
-            gmsh.finalize()
-    return data
+    return on_rank0(comm, f"chamber_{dim}d",
+                    lambda m: (chamber_2d if dim == 2 else chamber_3d)(m, **params), dim)
 
 
 def _surface_arrays(model, dim):

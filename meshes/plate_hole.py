@@ -13,6 +13,8 @@ from mpi4py import MPI
 import gmsh
 import numpy as np
 
+from meshes.distribute import on_rank0
+
 __all__ = ["plate_with_hole", "build"]
 
 
@@ -64,21 +66,4 @@ def plate_with_hole(model: gmsh.model, a: float, W: float, h_hole: float, h_far:
 
 def build(comm: MPI.Comm, a: float, W: float, h_hole: float, h_far: float, order: int = 1):
     """Mesh on ``comm`` (gmsh runs on rank 0): returns ``dolfinx.io.gmsh.MeshData``."""
-    from dolfinx.io import gmsh as gmshio
-
-    initialized = gmsh.isInitialized()
-    if not initialized:
-        gmsh.initialize()
-    gmsh.option.setNumber("General.Terminal", 0)
-    try:
-        if comm.rank == 0:
-            gmsh.model.add("plate_hole")
-            plate_with_hole(gmsh.model, a, W, h_hole, h_far, order)
-        comm.barrier()
-        data = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=2)
-    finally:
-        if comm.rank == 0:
-            gmsh.model.remove()
-        if not initialized:
-            gmsh.finalize()
-    return data
+    return on_rank0(comm, "plate_hole", lambda m: plate_with_hole(m, a, W, h_hole, h_far, order), 2)

@@ -577,17 +577,7 @@ class CoupledPenetration:
             t3 = clock()
             g_new = g_current = self._ghost_motion()
             t4 = clock()
-            mismatch = float(np.linalg.norm(g_new[0] - g_next[0]) / max(np.linalg.norm(g_new[0]), 1e-30))
-            ghost_max = float(np.abs(g_new[0]).max(initial=0.0))
-            # the ghosts sit in the far field of the cone: moving more than twice as far as the
-            # cone has pushed means the exchange is diverging, not that the sand flows
-            bound = 2 * self.depth + 2 * prm.radius
-            if not np.isfinite(ghost_max) or ghost_max > bound:
-                raise CouplingUnstable(
-                    f"coupling unstable at depth {self.depth:.4g} m (FE step {k + 1}): ghost "
-                    f"displacement {ghost_max:.3g} m exceeds twice the cone's travel ({bound:.3g} m); "
-                    f"reduce coupling.relaxation ({prm.relaxation}), coupling.substeps "
-                    f"({prm.substeps}) or penetrator.velocity ({prm.velocity} m/s)")
+            mismatch = self._check_ghosts(g_new, g_next, k)
             # the ghosts continue from where the grains saw them (no jump between FE steps)
             self.g_prev = g_next
             f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
@@ -607,6 +597,24 @@ class CoupledPenetration:
         return self.prm.window_depth
 
     # ---- checkpoints --------------------------------------------------------------------
+    def _check_ghosts(self, g_new, g_predicted, k: int) -> float:
+        """The interface mismatch of FE step ``k`` (ghost motion after the solve against the
+        motion the grains were driven with); raises :class:`CouplingUnstable` when a ghost
+        moved more than twice as far as the cone has pushed: the ghosts sit in the cone's far
+        field, so that means the exchange is diverging, not that the sand flows."""
+        prm = self.prm
+        mismatch = float(np.linalg.norm(g_new[0] - g_predicted[0])
+                         / max(np.linalg.norm(g_new[0]), 1e-30))
+        ghost_max = float(np.abs(g_new[0]).max(initial=0.0))
+        bound = 2 * self.depth + 2 * prm.radius
+        if not np.isfinite(ghost_max) or ghost_max > bound:
+            raise CouplingUnstable(
+                f"coupling unstable at depth {self.depth:.4g} m (FE step {k + 1}): ghost "
+                f"displacement {ghost_max:.3g} m exceeds twice the cone's travel ({bound:.3g} m); "
+                f"reduce coupling.relaxation ({prm.relaxation}), coupling.substeps "
+                f"({prm.substeps}) or penetrator.velocity ({prm.velocity} m/s)")
+        return mismatch
+
     def save_checkpoint(self, directory, meta: dict | None = None) -> Path:
         """Write what :meth:`run` needs to continue exactly (collective): the grains' state
         with contact history, the settled reference, the continuum constants, the FE state
