@@ -1,4 +1,9 @@
-"""Shared test set-up: MPI hygiene after each test (dolfinx python/test/conftest.py)."""
+"""Shared test set-up: MPI hygiene after each test (dolfinx python/test/conftest.py).
+
+Under ``mpiexec`` the automatic garbage collector is off and cyclic garbage is collected
+after every test, on every rank at once: PETSc objects held in reference cycles are destroyed
+collectively, and a collection started on one rank during another's collective deadlocks
+(:mod:`coupling.collective_gc`)."""
 
 import gc
 import os
@@ -7,6 +12,18 @@ import pytest
 
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+def _launched_ranks() -> int:
+    # the launcher's environment (MPICH / Hydra, Open MPI), read without initialising MPI
+    for key in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE"):
+        if os.environ.get(key, "").isdigit():
+            return int(os.environ[key])
+    return 1
+
+
+if _launched_ranks() > 1:
+    gc.disable()
 
 
 def _comm():

@@ -16,12 +16,20 @@ import numpy as np
 
 from coupling.apps.penetration.coupled import VERTICAL, CoupledPenetration, PenetrationParameters
 from coupling.checkpoints import ensure_free_space
+from coupling.collective_gc import collect, collective_gc
 from coupling.preflight import memory_mb
 
 __all__ = ["run_penetration"]
 
 
-def run_penetration(  # noqa: C901 (the next to split: one runner for every application)
+def run_penetration(prm: PenetrationParameters, out: str | Path, comm, **kwargs) -> dict:
+    """Run (or restart) a penetration into ``out``: :func:`_run_penetration`, with cyclic
+    garbage collected at the same points on every rank (:mod:`coupling.collective_gc`)."""
+    with collective_gc(comm):
+        return _run_penetration(prm, out, comm, **kwargs)
+
+
+def _run_penetration(  # noqa: C901 (the next to split: one runner for every application)
     prm: PenetrationParameters, out: str | Path, comm, *, frames: int = 5,
                     fields: bool = True, particles: bool = True, png: bool = True,
                     progress: bool = True, log=None, checkpoint_every: int = 0,
@@ -108,6 +116,7 @@ def run_penetration(  # noqa: C901 (the next to split: one runner for every appl
         if saved:
             cpt.save_checkpoint(out / "checkpoint", meta=meta)
         if frame:
+            collect(comm)
             if writer is not None:
                 writer.write(h["time"])
             if grains is not None:

@@ -28,6 +28,7 @@ import numpy as np
 from coupling.apps.punch.model import coupled_window, fe_block, lattice_block
 from coupling.apps.punch.scene import Scene
 from coupling.checkpoints import ensure_free_space
+from coupling.collective_gc import collect, collective_gc
 from coupling.preflight import memory_mb
 from coupling.scene import load_scene
 from coupling.staggered import InterfaceDidNotConverge, StaggeredOptions
@@ -88,7 +89,14 @@ def summarise_punch(scene, ranks: int = 1) -> dict:
     }
 
 
-def run_scene(  # noqa: C901 (the next to split: one runner for every application)
+def run_scene(scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, **kwargs) -> dict:
+    """Run a ``bonded_punch`` scene: :func:`_run_scene`, with cyclic garbage collected at the
+    same points on every rank (:mod:`coupling.collective_gc`)."""
+    with collective_gc(comm):
+        return _run_scene(scene, out, comm, **kwargs)
+
+
+def _run_scene(  # noqa: C901 (the next to split: one runner for every application)
     scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
               start_step: int = 0, checkpoint: str | Path | None = None, stop=None,
               meta: dict | None = None) -> dict:
@@ -172,6 +180,7 @@ def run_scene(  # noqa: C901 (the next to split: one runner for every applicatio
                         "iterations": its, "wall_time_s": elapsed})
         if step % scene.output.every == 0 or step + 1 == pen.steps:
             ensure_free_space(out, comm, "frame")
+            collect(comm)
             if writer is not None:
                 writer.write(float(step + 1))
             if scene.output.particles and comm.rank == 0:
@@ -264,7 +273,7 @@ def restart_scene(out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
                   "nothing to restart (raise penetrator.steps in its scene.toml to go further)",
                   flush=True)
         return json.loads((out / "history.json").read_text())
-    return run_scene(scene, out, comm, progress, start_step=step, checkpoint=checkpoint, stop=stop,
+    return run_scene(scene, out, comm, progress=progress, start_step=step, checkpoint=checkpoint, stop=stop,
                      meta=meta)
 
 
