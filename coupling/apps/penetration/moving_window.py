@@ -128,7 +128,7 @@ class MovingWindowParameters:
     """
 
     depth: float = 0.08
-    trigger: float = 18.0         # the benchmark's best (benchmarks/results/moving_window.json)
+    trigger: float = 18.0         # the scene's (benchmarks/results/moving_window.json compares 6-18)
     step: float = 6.0
     max_height: float | None = None
     settle_steps: int = 8000
