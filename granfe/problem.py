@@ -345,7 +345,9 @@ class ContinuumProblem:
             out.append(np.where(on, g.x.array, 0.0))
         return out
 
-    def _residual_vector(self) -> np.ndarray:
+    def _reaction_work(self, where: Where, modes) -> np.ndarray:
+        """Per mode, the virtual work of the reactions on the boundary (the residual, assembled
+        once, against the mode restricted to the boundary's dofs). Collective."""
         from dolfinx.fem.petsc import assemble_vector
 
         b = assemble_vector(fem.form(self.residual()))
@@ -353,7 +355,9 @@ class ContinuumProblem:
         n = self.V.dofmap.index_map.size_local * self.V.dofmap.index_map_bs
         r = b.array_r[:n].copy()
         b.destroy()
-        return r
+        comm = self.domain.comm
+        return np.array([comm.allreduce(float(r @ g[:n]), MPI.SUM)
+                         for g in self._boundary_weights(where, modes)])
 
     def reaction(self, where: Where, component: str = "u"):
         """The reaction on a boundary, the force its supports exert on the body.
@@ -374,22 +378,17 @@ class ContinuumProblem:
             else:
                 mode[field] = lambda x: np.ones(x.shape[1])
             modes.append(mode)
-        r = self._residual_vector()
-        weights = self._boundary_weights(where, modes)
-        comm = self.domain.comm
-        values = np.array([comm.allreduce(float(r @ g[:len(r)]), MPI.SUM) for g in weights])
+        values = self._reaction_work(where, modes)
         return float(values[0]) if (sub is not None or not f.shape) else values
 
     def reaction_moment(self, where: Where, about=(0.0, 0.0, 0.0)):
         """The moment of the reactions (forces and couples) on a boundary about a point:
-        a scalar (z) in 2D, a 3-vector in 3D. Uses the model's rigid rotation modes."""
-        modes = self.model.rigid_modes(self.gdim)[self.gdim:]
-        r = self._residual_vector()
-        comm = self.domain.comm
-        m0 = np.array([comm.allreduce(float(r @ g[:len(r)]), MPI.SUM)
-                       for g in self._boundary_weights(where, modes)])
+        a scalar (z) in 2D, a 3-vector in 3D. Uses the model's rigid modes (translations
+        first, then rotations about the origin)."""
+        work = self._reaction_work(where, self.model.rigid_modes(self.gdim))
+        m0 = work[self.gdim:]
         force = np.zeros(3)
-        force[:self.gdim] = self.reaction(where, "u")
+        force[:self.gdim] = work[:self.gdim]
         x0 = np.zeros(3)
         x0[:len(about)] = about
         shift = np.cross(x0, force)

@@ -138,4 +138,4 @@ def rigid_body_modes(V: fem.FunctionSpace) -> PETSc.NullSpace:
     (u = e_k, phi = 0) and rotations (u = e_k x x, phi = e_k), 3 in 2D, 6 in 3D."""
     from granfe.models.micropolar import Micropolar
 
-    return rigid_modes_nullspace(V, Micropolar.rigid_modes(None, V.mesh.geometry.dim))
+    return rigid_modes_nullspace(V, Micropolar.rigid_modes(V.mesh.geometry.dim))

@@ -76,7 +76,7 @@ def sub_space(V: fem.FunctionSpace, component: str, fields=None) -> fem.Function
 def _micropolar_fields(gdim):
     from granfe.models.micropolar import Micropolar
 
-    return Micropolar.fields(None, gdim)
+    return Micropolar.fields(gdim)
 
 
 COMPONENTS = {gdim: components(_micropolar_fields(gdim)) for gdim in (2, 3)}

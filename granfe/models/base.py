@@ -46,7 +46,7 @@ class ContinuumModel:
 
     A subclass sets :attr:`name` (its registry key), :attr:`linear` (residual affine in the
     fields for fixed state, so a time step may be solved with one factorisation) and
-    :attr:`material_type`, and implements :meth:`fields`, :meth:`make_constants`,
+    :attr:`material_type`, and implements :meth:`fields`, :meth:`constant_values`,
     :meth:`internal_work`, :meth:`inertia_work`, :meth:`stresses` and :meth:`rigid_modes`;
     a history-dependent model also implements :meth:`state_variables` and
     :meth:`state_update`.
@@ -91,7 +91,14 @@ class ContinuumModel:
         raise NotImplementedError
 
     def make_constants(self, domain):
-        raise NotImplementedError
+        """The constants of :meth:`constant_values` as ``fem.Constant`` attributes of a
+        namespace (a model may return its own typed container instead)."""
+        from types import SimpleNamespace
+
+        from dolfinx import default_scalar_type, fem
+
+        return SimpleNamespace(**{k: fem.Constant(domain, default_scalar_type(v))
+                                  for k, v in self.constant_values(self.material).items()})
 
     def constant_values(self, material) -> dict[str, float]:
         raise NotImplementedError
@@ -127,7 +134,8 @@ class ContinuumModel:
 
     def rigid_modes(self, gdim: int) -> list[tuple[Callable | None, ...]]:
         """Rigid-body modes: per mode one interpolation callable ``x -> values`` per field
-        (None for a zero field)."""
+        (None for a zero field); the gdim translations first, then the rotations about the
+        origin (:meth:`~granfe.problem.ContinuumProblem.reaction_moment` reads them so)."""
         raise NotImplementedError
 
     def plot_fields(self, w: tuple, state: dict) -> dict:

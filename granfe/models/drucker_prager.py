@@ -33,6 +33,7 @@ import dolfinx_solver  # noqa: F401
 import ufl
 
 from granfe.materials import MicropolarMaterial
+from granfe.models.base import ContinuumModel
 from granfe.models.micropolar import Micropolar, curvature, strain
 
 __all__ = ["DruckerPragerMaterial", "MicropolarDruckerPrager", "drucker_prager_constants"]
@@ -166,12 +167,8 @@ class MicropolarDruckerPrager(Micropolar):
         return values
 
     def make_constants(self, domain):
-        from types import SimpleNamespace
-
-        from dolfinx import default_scalar_type, fem
-
-        return SimpleNamespace(**{k: fem.Constant(domain, default_scalar_type(v))
-                                  for k, v in self.constant_values(self.material).items()})
+        # the namespace of every constant (the micropolar dataclass holds the elastic ones only)
+        return ContinuumModel.make_constants(self, domain)
 
     def state_variables(self, gdim):
         return {"plastic_strain": (3, 3), "plastic_curvature": (2,) if gdim == 2 else (3, 3),

@@ -138,7 +138,8 @@ class Micropolar(ContinuumModel):
     linear = True
     material_type = MicropolarMaterial
 
-    def fields(self, gdim):
+    @staticmethod
+    def fields(gdim):
         axes = "xyz"[:gdim]
         if gdim == 2:
             phi = Field("phi", (), ("phi_z",), 1)   # plane strain: phi_z only
@@ -169,7 +170,8 @@ class Micropolar(ContinuumModel):
         sigma, m = stresses(*w, self.constants)
         return {"sigma": sigma, "couple_stress": m}
 
-    def rigid_modes(self, gdim):
+    @staticmethod
+    def rigid_modes(gdim):
         """Translations (u = e_k, phi = 0) and rotations (u = e_k x x, phi = e_k)."""
         def translation(k):
             return lambda x: np.vstack([np.full(x.shape[1], float(i == k)) for i in range(gdim)])

@@ -13,13 +13,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from types import SimpleNamespace
 
 import dolfinx_solver  # noqa: F401
 
 import numpy as np
 import ufl
-from dolfinx import default_scalar_type, fem
 
 from granfe.models.base import ContinuumModel, Field
 
@@ -62,10 +60,6 @@ class StrainMemory(ContinuumModel):
     def constant_values(self, material):
         return {"lam": material.lam, "mu": material.mu, "s": material.softening,
                 "rho": material.rho}
-
-    def make_constants(self, domain):
-        return SimpleNamespace(**{k: fem.Constant(domain, default_scalar_type(v))
-                                  for k, v in self.constant_values(self.material).items()})
 
     def state_variables(self, gdim):
         return {"max_strain": ()}
