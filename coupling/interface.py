@@ -1,6 +1,15 @@
 """The DE x FE interface: ghost motion from the FE fields, prescribed FE dofs from the
-particles, and Aitken relaxation of the exchanged values (used by the static and the
-dynamic staggered solvers)."""
+particles, and the accelerators of the fixed point on the exchanged values (used by the static
+and the dynamic staggered solvers): constant relaxation, Aitken's dynamic relaxation and the
+interface quasi-Newton method IQN-ILS.
+
+Every accelerator has the same contract: ``update(current, target) -> (new, relative
+residual)`` for one evaluation ``target = H(current)`` of the fixed-point map, ``new_step()``
+at a time (load) step boundary and ``reset()`` to forget everything. They see the
+distributed interface vector (each rank its owned entries) only through the ``dot`` / ``norm``
+of the space they are given (:class:`CouplingInterface`): global reductions, so every rank
+takes the same decisions and coefficients.
+"""
 
 from __future__ import annotations
 
@@ -11,13 +20,42 @@ import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
 
 import numpy as np
+import scipy.linalg
 from dolfinx import fem
 
 from coupling.locate import owner_ranks, relocate
 from coupling.operators import FieldBasis, NodalProjection
 from coupling.regions import CouplingRegions
 
-__all__ = ["CouplingInterface", "Aitken"]
+__all__ = ["CouplingInterface", "DistributedVectors", "ConstantRelaxation", "Aitken", "IQNOptions",
+           "IQNILS"]
+
+
+class DistributedVectors:
+    """The global Euclidean inner product of vectors whose entries are split over the ranks of
+    ``comm`` (each rank holds its owned entries, none twice): every rank gets the same value.
+
+    Args:
+        comm: the communicator the entries are split over.
+    """
+
+    def __init__(self, comm):
+        self.comm = comm
+
+    def norm(self, v: np.ndarray) -> float:
+        return float(np.sqrt(self.comm.allreduce(float(v @ v), MPI.SUM)))
+
+    def dot(self, a: np.ndarray, b: np.ndarray) -> float:
+        return float(self.comm.allreduce(float(a @ b), MPI.SUM))
+
+    def dots(self, vectors: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Global inner products (m,) of the rows of ``vectors`` (m, n_local) with ``b``
+        (n_local,) in one reduction (m calls of :meth:`dot` would take m)."""
+        local = np.ascontiguousarray(np.asarray(vectors, dtype=float).reshape(-1, len(b)) @ b)
+        out = np.empty_like(local)
+        if local.size:
+            self.comm.Allreduce(local, out, op=MPI.SUM)
+        return out
 
 
 @dataclass
@@ -29,8 +67,9 @@ class _Field:
     prescribed: np.ndarray  # owned local parent dofs
 
 
-class CouplingInterface:
-    """Operators between a continuum FE problem and a set of particles.
+class CouplingInterface(DistributedVectors):
+    """Operators between a continuum FE problem and a set of particles; the prescribed values
+    (this rank's owned dofs) are :class:`DistributedVectors` over the mesh's communicator.
 
     Args:
         problem: a :class:`granfe.problem.ContinuumProblem` whose model has the fields
@@ -50,7 +89,8 @@ class CouplingInterface:
                  min_support: float = 0.0):
         self.problem = problem
         V, domain = problem.V, problem.domain
-        self.comm = comm = domain.comm
+        super().__init__(domain.comm)
+        comm = self.comm
         self.gdim = gdim = domain.geometry.dim
         self.x = np.asarray(x, dtype=float)
         self.kinds = np.asarray(kinds)
@@ -195,12 +235,6 @@ class CouplingInterface:
         mask.scatter_forward()
         return candidates[mask.array[candidates] > 0.5]
 
-    def norm(self, v: np.ndarray) -> float:
-        return float(np.sqrt(self.comm.allreduce(float(v @ v), MPI.SUM)))
-
-    def dot(self, a: np.ndarray, b: np.ndarray) -> float:
-        return float(self.comm.allreduce(float(a @ b), MPI.SUM))
-
     def ghost_motion(self, w: fem.Function | None = None):
         """(u_ghost (n_g, dim), theta_ghost (n_g,) or (n_g, 3)) on every rank: ``Q^ = N D``."""
         w = self.problem.w if w is None else w
@@ -240,8 +274,34 @@ class CouplingInterface:
         self.g.x.scatter_forward()
 
 
+class ConstantRelaxation:
+    """Fixed relaxation ``x <- x + omega (H(x) - x)`` (Gauss-Seidel for ``omega = 1``).
+
+    Args:
+        space: gives ``norm`` of the distributed interface vector (a :class:`CouplingInterface`).
+        omega: the relaxation factor.
+    """
+
+    def __init__(self, space, omega: float = 1.0):
+        self.space, self.omega = space, float(omega)
+        self.columns = 0
+
+    def reset(self) -> None:
+        """Nothing to forget."""
+
+    def new_step(self) -> None:
+        """Nothing to forget."""
+
+    def update(self, current: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, float]:
+        """New iterate and the relative residual ``|H(x) - x| / |H(x)|``."""
+        r = target - current
+        return current + self.omega * r, self.space.norm(r) / max(self.space.norm(target), 1e-300)
+
+
 class Aitken:
     """Aitken's dynamic relaxation of a fixed point ``x <- x + omega (T(x) - x)``."""
+
+    columns = 0
 
     def __init__(self, interface: CouplingInterface, omega: float = 1.0, enabled: bool = True,
                  bounds=(0.05, 2.0)):
@@ -250,6 +310,10 @@ class Aitken:
 
     def reset(self):
         self.omega, self.r_prev = self.omega0, None
+
+    def new_step(self) -> None:
+        """A new time (load) step starts again from the first relaxation factor."""
+        self.reset()
 
     def update(self, current: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, float]:
         """New iterate and the relative residual ``|T(x) - x| / |T(x)|``."""
@@ -263,3 +327,171 @@ class Aitken:
         self.r_prev = r
         scale = max(self.interface.norm(target), 1e-300)
         return current + self.omega * r, self.interface.norm(r) / scale
+
+
+@dataclass(frozen=True)
+class IQNOptions:
+    """Settings of :class:`IQNILS` (the names of preCICE's IQN-ILS options in brackets).
+
+    Attributes:
+        reuse: time (load) steps whose secant pairs stay in the least-squares problem of the
+            following steps [time-windows-reused]; 0: each step starts with the relaxation
+            ``omega``, then learns from its own iterations only.
+        max_columns: most secant pairs kept, newest first [max-used-iterations]; the oldest
+            are dropped beyond it.
+        filter_limit: QR2 filter [filter limit]: a pair whose residual difference has less than
+            this fraction of its norm outside the span of the newer ones is nearly linearly
+            dependent on them and is dropped for good (the least-squares problem would be
+            ill-conditioned); 0 keeps every pair that is not exactly dependent.
+    """
+
+    reuse: int = 0
+    max_columns: int = 100
+    filter_limit: float = 1e-8
+
+    def __post_init__(self):
+        if not (isinstance(self.reuse, int) and self.reuse >= 0):
+            raise ValueError(f"iqn.reuse (time steps whose secant pairs are reused) must be an integer "
+                             f">= 0, got {self.reuse!r}")
+        if not (isinstance(self.max_columns, int) and self.max_columns >= 1):
+            raise ValueError(f"iqn.max_columns must be a positive integer, got {self.max_columns!r}")
+        if not (0 <= self.filter_limit < 1):
+            raise ValueError(f"iqn.filter_limit (QR2 filter) must lie in [0, 1), got {self.filter_limit!r}")
+
+
+class IQNILS:
+    """Interface quasi-Newton with an inverse Jacobian from a least-squares model (IQN-ILS,
+    Degroote, Bathe & Vierendeels 2009, as preCICE uses for partitioned coupling).
+
+    For the fixed point ``x = H(x)`` with residual ``r = H(x) - x``, the k-th update keeps the
+    differences between consecutive iterations (newest first) of the residuals,
+    ``V = [r^k - r^(k-1), ...]``, and of the outputs, ``W = [H(x^k) - H(x^(k-1)), ...]``,
+    solves ``min_c |V c + r^k|`` and steps to ``x^(k+1) = H(x^k) + W c``. The first
+    iteration without pairs relaxes, ``x + omega r``. On a linear map ``H(x) = A x + b`` of
+    dimension n, ``x^k + (x^k - x^(k-1), ...) c`` is the GMRES iterate of ``(I - A) x = b``
+    over the k pairs' Krylov space and ``x^(k+1)`` is H of it (any spectrum without the
+    eigenvalue 1, also where plain iteration diverges): the (n + 1)-th update returns the
+    solution, and the (n + 2)-th evaluation of H confirms it.
+
+    The least-squares problem is solved by a QR factorisation of V, rebuilt newest column
+    first by classical Gram-Schmidt with one re-orthogonalisation ("twice is enough"), every
+    inner product a global one (``space.dots`` / ``space.dot``): each rank holds its rows of
+    Q, and R and ``Q^T r`` are the same on every rank, as a Krylov solver's norms are. The QR2
+    filter drops older pairs that the newer ones nearly span (:class:`IQNOptions`). Cost per
+    update with m pairs: 2m + 1 reductions of at most m numbers, O(m^2 n) flops on the local
+    rows and 2m stored vectors.
+
+    Args:
+        space: ``dot(a, b)`` and ``norm(a)`` of the distributed interface vector, and
+            optionally ``dots(Q, b)``, the m inner products of Q's rows with b in one reduction
+            (a :class:`CouplingInterface` has all three).
+        omega: relaxation of the first iteration, in (0, 1].
+        options: :class:`IQNOptions`.
+    """
+
+    def __init__(self, space, omega: float = 1.0, options: IQNOptions = IQNOptions()):
+        if not 0 < omega <= 1:
+            raise ValueError(f"omega (initial relaxation of IQN-ILS) must lie in (0, 1], got {omega!r}")
+        self.space, self.omega, self.options = space, float(omega), options
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every pair (a new problem)."""
+        self._pairs: list[tuple[np.ndarray, np.ndarray, int]] = []   # (dr, dH, step), newest first
+        self._step = 0
+        self._last = None           # (r, H(x)) of the last update of this step
+        self.columns = 0            # pairs used by the last update
+        self.coefficients = np.zeros(0)   # c of the last update (the same on every rank)
+        self.filtered = 0           # pairs dropped by the filter, all steps
+
+    def new_step(self) -> None:
+        """A new time (load) step: no difference spans the step boundary; the pairs of the last
+        ``options.reuse`` steps are kept."""
+        self._step += 1
+        self._last = None
+        self._pairs = [p for p in self._pairs if p[2] >= self._step - self.options.reuse]
+
+    def state_dict(self) -> dict:
+        """What the next steps reuse, at a step boundary (after the last update of a step):
+        this rank's rows of the kept pairs ``dr`` and ``dh`` (m, n_local), the step of each
+        (m,), the step count and the filter's count; copies, ``np.savez``-ready. A restart on
+        the same partition that loads it continues exactly."""
+        n = len(self._pairs[0][0]) if self._pairs else 0
+        m = len(self._pairs)   # a rank may hold no interface entries (n = 0) and still m pairs
+        return {"dr": np.array([p[0] for p in self._pairs], dtype=float).reshape(m, n),
+                "dh": np.array([p[1] for p in self._pairs], dtype=float).reshape(m, n),
+                "pair_step": np.array([p[2] for p in self._pairs], dtype=np.int64),
+                "step": np.int64(self._step), "filtered": np.int64(self.filtered)}
+
+    def load_state(self, d) -> None:
+        """Restore :meth:`state_dict` (a dict or an ``np.load`` of one); ValueError naming an
+        entry that is missing or does not fit."""
+        missing = [k for k in ("dr", "dh", "pair_step", "step", "filtered") if k not in d]
+        if missing:
+            raise ValueError(f"IQN-ILS state has no {missing} (not an IQNILS.state_dict?)")
+        dr, dh, steps = np.asarray(d["dr"], float), np.asarray(d["dh"], float), np.asarray(d["pair_step"])
+        if dr.shape != dh.shape or dr.ndim != 2 or len(steps) != len(dr):
+            raise ValueError(f"IQN-ILS state: 'dr' {dr.shape}, 'dh' {dh.shape} and 'pair_step' "
+                             f"{steps.shape} do not fit together")
+        self.reset()
+        self._pairs = [(a.copy(), b.copy(), int(k)) for a, b, k in zip(dr, dh, steps, strict=True)]
+        self._step, self.filtered = int(d["step"]), int(d["filtered"])
+
+    def update(self, current: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, float]:
+        """New iterate and the relative residual ``|H(x) - x| / |H(x)|`` for ``target = H(current)``."""
+        space = self.space
+        r = target - current
+        res = space.norm(r) / max(space.norm(target), 1e-300)
+        if self._last is not None:
+            self._pairs.insert(0, (r - self._last[0], target - self._last[1], self._step))
+            del self._pairs[self.options.max_columns:]
+        self._last = (r, np.array(target, dtype=float, copy=True))
+        if not np.isfinite(res):
+            self.columns, self.coefficients = 0, np.zeros(0)
+            return current + self.omega * r, res
+        Q, R, kept = self._factorise([p[0] for p in self._pairs])
+        self.filtered += len(self._pairs) - len(kept)
+        self._pairs = [self._pairs[j] for j in kept]
+        self.columns = len(kept)
+        if not kept:
+            self.coefficients = np.zeros(0)
+            return current + self.omega * r, res
+        self.coefficients = c = scipy.linalg.solve_triangular(R, -self._dots(Q, r))
+        new = np.array(target, dtype=float, copy=True)
+        for cj, (_, dw, _) in zip(c, self._pairs, strict=True):
+            new += cj * dw
+        return new, res
+
+    def _factorise(self, columns: list[np.ndarray]):
+        """QR of the columns (local rows), newest first, with the QR2 filter: (Q (m, n_local),
+        R (m, m) upper triangular, indices of the columns kept)."""
+        space, limit = self.space, self.options.filter_limit
+        n_local = len(columns[0]) if columns else 0
+        Q = np.zeros((0, n_local))
+        R_cols, kept = [], []
+        for j, v in enumerate(columns):
+            rho0 = space.norm(v)
+            if not (np.isfinite(rho0) and rho0 > 0):
+                continue
+            w, coeff = np.array(v, dtype=float, copy=True), np.zeros(len(Q))
+            for _ in range(2):
+                s = self._dots(Q, w)
+                w -= s @ Q
+                coeff += s
+            rho = space.norm(w)
+            if not rho > max(limit, 1e-14) * rho0:
+                continue
+            Q = np.vstack([Q, w / rho])
+            R_cols.append(np.append(coeff, rho))
+            kept.append(j)
+        R = np.zeros((len(Q), len(Q)))
+        for j, col in enumerate(R_cols):
+            R[: j + 1, j] = col
+        return Q, R, kept
+
+    def _dots(self, Q: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Global ``Q w``: one reduction if the space has ``dots``, else one per row."""
+        dots = getattr(self.space, "dots", None)
+        if dots is not None:
+            return dots(Q, w)
+        return np.array([self.space.dot(q, w) for q in Q])

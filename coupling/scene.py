@@ -6,19 +6,25 @@ dataclass of typed defaults; ``scene.kind`` picks the application's schema from
 :mod:`coupling.applications`. Layering (pyro2 / FFCx style): dataclass defaults, then the TOML file,
 then ``--set section.key=value`` overrides. An unknown section or key, a value of the wrong
 type, or a value out of range raises :class:`SceneError` naming ``section.key``.
+
+A key that sets a run parameter is declared with :func:`parameter`: its default, range and
+message are the parameter dataclass's (stated once), and :func:`parameter_keys` maps the
+dataclass's messages back to ``section.key``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 from coupling.applications import APPLICATIONS, application
 
-__all__ = ["SceneError", "SceneInfo", "load_scene", "parse_overrides", "KINDS"]
+__all__ = ["SceneError", "SceneInfo", "load_scene", "parse_overrides", "KINDS", "parameter",
+           "parameter_keys", "parameter_values"]
 
 KINDS = tuple(APPLICATIONS)
 
@@ -74,11 +80,44 @@ class _Tables:
 
 
 def _named(message: str, keys: dict) -> str:
-    """``message`` with its leading parameter name replaced by the scene's section.key."""
+    """``message`` with the parameter names it mentions (leading, or as ``name = value``)
+    replaced by the scene's ``section.key``."""
     for name, key in sorted(keys.items(), key=lambda kv: -len(kv[0])):
-        if message.startswith(name):
-            return key + message[len(name):]
+        if message.startswith(name + " "):
+            message = key + message[len(name):]
+        message = re.sub(rf"(?<![\w.]){re.escape(name)}(?= = )", key, message)
     return message
+
+
+def parameter(owner, name: str, default=dataclasses.MISSING):
+    """A scene key that sets the field ``name`` of the parameter dataclass ``owner``; its
+    default is that field's (stated once, there) unless the scene spells it differently."""
+    f = owner.__dataclass_fields__[name]
+    return dataclasses.field(default=f.default if default is dataclasses.MISSING else default,
+                             metadata={"parameter": (owner, name)})
+
+
+def parameter_keys(tables, owner) -> dict[str, str]:
+    """``{field of owner: "section.key"}`` over the scene's tables (a dataclass or its type)."""
+    keys = {}
+    for section in fields(tables):
+        for f in fields(section.default_factory()):
+            target = f.metadata.get("parameter")
+            if target is not None and target[0] is owner:
+                keys[target[1]] = f"{section.name}.{f.name}"
+    return keys
+
+
+def parameter_values(scene, owner) -> dict:
+    """``{field of owner: value}`` read from the scene's tables."""
+    values = {}
+    for section in fields(scene):
+        table = getattr(scene, section.name)
+        for f in fields(table):
+            target = f.metadata.get("parameter")
+            if target is not None and target[0] is owner:
+                values[target[1]] = getattr(table, f.name)
+    return values
 
 
 def _toml_value(v):

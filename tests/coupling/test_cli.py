@@ -42,8 +42,8 @@ def test_run_then_restart_reproduces(tmp_path):
     assert [h["step"] for h in history] == [1, 2]
     # linear problem: force proportional to settlement
     assert abs(history[1]["punch_force"] / history[0]["punch_force"] - 2.0) < 1e-6
-    assert (out / "particles.pvd").exists() and list((out / "particles").glob("*.vtu"))
-    assert list(out.glob("continuum_*_fields.bp"))
+    assert (out / "particles.pvd").exists() and list(out.glob("particles_*.vtu"))
+    assert list(out.glob("continuum*_fields.bp"))
     # rewind the checkpoint to step 1 and restart: step 2 is recomputed from the saved state
     state = out / "checkpoint" / "state.json"
     json.loads(state.read_text())
@@ -145,7 +145,8 @@ def test_3d_penetration_restart_continues_the_run(tmp_path):
     assert len(a) == len(b) > 10
     scale = max(abs(q) for q, _ in a)
     assert scale > 0 and all(abs(x[0] - y[0]) <= 1e-10 * scale and x[1] == y[1] for x, y in zip(a, b, strict=False))
-    assert (out / "grains_from0010.pvd").exists()
+    # one series of grains across the restart: its frame at step 16 written again, not twice
+    assert (out / "grains.pvd").read_text().count("<DataSet") == 1
 
 
 def test_restart_without_checkpoint_is_named(tmp_path):

@@ -43,8 +43,10 @@ Set-up:
    penetrator's travel stop the run with :class:`CouplingUnstable`.
 
 Outputs: tip resistance ``q_c`` (vertical force on the cone / pile base over the tip area:
-cone width per unit thickness in 2D, ``pi R^2`` in 3D) and sleeve friction ``f_s`` (vertical
-force on the shaft over its embedded area) against depth. :meth:`CoupledPenetration.
+cone width per unit thickness in 2D, ``pi R^2`` in 3D), sleeve friction ``f_s`` (vertical
+force on a friction sleeve of 3.75 cone diameters just above the cone over its fixed area,
+ISO 22476-1) and the friction ratio against depth (:func:`~coupling.apps.penetration.
+penetrators.cone_record`). :meth:`CoupledPenetration.
 save_checkpoint` writes everything :meth:`~CoupledPenetration.run` needs to continue exactly.
 """
 
@@ -52,15 +54,16 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
 
 import numpy as np
 
-from coupling.apps.penetration.penetrators import cone_clump, penetrator_clump, tip_height
-from coupling.interface import CouplingInterface
+from coupling.apps.penetration.parameters import VERTICAL, PenetrationParameters
+from coupling.apps.penetration.penetrators import cone_clump, cone_parts, cone_record, penetrator_clump, tip_height
+from coupling.interface import IQNILS, CouplingInterface, IQNOptions
 from coupling.regions import Box, CouplingRegions
 from coupling.substep import GhostMotion, sub_cycle
 from dem import GHOST, ContactMaterial, Particles, Simulation
@@ -71,110 +74,12 @@ from granfe.materials import MicropolarMaterial
 from granfe.problem import MicropolarProblem
 
 __all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record",
-           "CouplingUnstable", "cone_clump", "penetrator_clump", "tip_height"]
+           "CouplingUnstable", "cone_clump", "penetrator_clump", "tip_height", "cone_parts"]
 
-VERTICAL = {2: 1, 3: 2}   # index of the vertical (penetration) axis
 
 
 class CouplingUnstable(RuntimeError):
     """The DE x FE exchange diverged (ghost motion beyond its bound, or NaN)."""
-
-
-@dataclass(frozen=True)
-class PenetrationParameters:
-    """All lengths in m, times in s. Defaults: a 2 cm cone into ~1000 disks of 1.5 mm (2D).
-
-    In 3D (``dim = 3``) ``chamber_width`` is the chamber's diameter, the window is the square
-    prism ``|x|, |y| <= window_half_width`` of depth ``window_depth``, the grains are
-    Hertz-Mindlin spheres of Young's modulus ``youngs_modulus`` (``kn`` and ``kt_over_kn``
-    are 2D only), and ``shape`` is ``"cone"`` (apex ``apex_deg``) or ``"pile"`` (flat end),
-    both of radius ``cone_radius``.
-    """
-
-    chamber_width: float = 0.3
-    chamber_depth: float = 0.2
-    window_half_width: float = 0.04
-    window_depth: float = 0.08
-    ghost_width: float = 2.5          # grain diameters
-    handshake: float = 2.0            # elements (1 is at the edge of stability)
-    element_size_window: float = 0.008
-    element_size_far: float = 0.04
-    radius: float = 1.5e-3
-    jitter: float = 0.1               # radius reduction, fraction (no initial overlap)
-    kn: float = 2.0e5                 # linear contact stiffness [N/m per m thickness] (2D)
-    kt_over_kn: float = 0.5
-    nu: float = 0.25
-    density: float = 2650.0
-    friction: float = 0.5
-    restitution: float = 0.5
-    cone_radius: float = 0.01
-    apex_deg: float = 60.0
-    velocity: float = 0.2
-    depth: float = 0.04
-    substeps: int = 50
-    relaxation: float = 0.3           # of the prescribed values D^ per FE step
-    settle_time: float = 0.3
-    gravity: float = 9.81
-    seed: int = 1
-    dim: int = 2
-    shape: str = "cone"
-    # Hertz-Mindlin spheres (3D): quartz E = 2.9e10 Pa (seed 002 Table 1) scaled by 1e-3, so
-    # that the explicit step is ~30x longer; contact stiffness, and q_c with it, scale down
-    youngs_modulus: float = 2.9e7
-    # stability studies (benchmarks/stability.py): the DEM step times dt_factor (past the
-    # critical step above 1 / safety: 20 for the 2D linear law, 5 in 3D) and the continuum's
-    # constants times continuum_stiffness (1: consistent with the grains)
-    dt_factor: float = 1.0
-    continuum_stiffness: float = 1.0
-
-    def __post_init__(self):
-        for name in ("chamber_width", "chamber_depth", "window_half_width", "window_depth",
-                     "ghost_width", "handshake", "element_size_window", "element_size_far",
-                     "radius", "kn", "density", "cone_radius", "velocity", "depth", "settle_time",
-                     "youngs_modulus", "dt_factor", "continuum_stiffness"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be > 0, got {v!r}")
-        if self.dim not in (2, 3):
-            raise ValueError(f"dim must be 2 or 3, got {self.dim!r}")
-        if self.shape not in ("cone", "pile"):
-            raise ValueError(f"shape must be 'cone' or 'pile', got {self.shape!r}")
-        if self.shape == "pile" and self.dim == 2:
-            raise ValueError("shape = 'pile' needs dim = 3 (the 2D penetrator is a cone's section)")
-        if self.window_half_width <= 2 * self.cone_radius:
-            raise ValueError(f"window_half_width = {self.window_half_width} must exceed twice the "
-                             f"cone radius ({self.cone_radius}): the cone must stay inside the window")
-        if self.depth + self.cone_radius * 2 >= self.window_depth:
-            raise ValueError(f"depth = {self.depth} m leaves the cone too close to the window base "
-                             f"(window_depth = {self.window_depth} m)")
-        reach = self.window_half_width + (self.ghost_width + 1) * 2 * self.radius
-        if reach * (np.sqrt(2) if self.dim == 3 else 1.0) >= self.chamber_width / 2:
-            raise ValueError("the window and its ghost band must lie inside the chamber "
-                             f"(chamber_width = {self.chamber_width} m is too small)")
-        if not 0 <= self.jitter < 0.5:
-            raise ValueError(f"jitter must lie in [0, 0.5), got {self.jitter!r}")
-        law = "linear" if self.dim == 2 else "hertz_mindlin"
-        if self.dt_factor * DEFAULT_SAFETY[law] > 1.0:
-            raise ValueError(f"dt_factor = {self.dt_factor} puts the DEM step above the critical "
-                             f"step of the {law} law (the default is {DEFAULT_SAFETY[law]} of it: "
-                             f"dt_factor <= {1 / DEFAULT_SAFETY[law]:g})")
-        if self.substeps < 1:
-            raise ValueError(f"substeps must be >= 1, got {self.substeps!r}")
-
-
-def cone_record(prm, force_on_cone, on_cone, depth, step, t, **extra) -> dict:
-    """History entry: tip force (vertical force on the cone, or the pile's base), q_c = F /
-    tip area (2D: cone width, per unit thickness; 3D: pi R^2), sleeve friction f_s = vertical
-    force on the shaft / (perimeter x embedded length)."""
-    ax = VERTICAL[prm.dim]
-    tip_force = float(force_on_cone[on_cone, ax].sum())
-    sleeve = float(force_on_cone[~on_cone, ax].sum())
-    embedded = max(depth - tip_height(prm), 0.0)
-    R = prm.cone_radius
-    area, perimeter = (2 * R, 2.0) if prm.dim == 2 else (np.pi * R**2, 2 * np.pi * R)
-    return {"step": step, "time": t, "depth": depth, "tip_force": tip_force,
-            "q_c": tip_force / area, "sleeve_force": sleeve,
-            "f_s": sleeve / (perimeter * embedded) if embedded > 0 else 0.0, **extra}
 
 
 def contact_material(prm: PenetrationParameters) -> ContactMaterial:
@@ -289,7 +194,7 @@ class DemPenetration:
         x, radius = grain_lattice(prm, lo, hi, rng)
         Particles.spheres(x, radius, prm.density, dim=dim).check_overlaps()
         pen, r_pen, self.on_cone, material = _cone_and_material(prm, x[:, ax].max())
-        self.pen0 = pen.copy()
+        self.pen0, self.parts = pen.copy(), cone_parts(pen, self.on_cone, prm)
         n = len(x)
         p = Particles.spheres(np.vstack([x, pen]), np.concatenate([radius, np.full(len(pen), r_pen)]),
                               prm.density, dim=dim,
@@ -322,7 +227,7 @@ class DemPenetration:
                               VERTICAL[prm.dim])
             t += block
             f = p.force[self.pen_index] - self.clump_internal
-            self.history.append(cone_record(prm, f, self.on_cone, depth, k + 1, t,
+            self.history.append(cone_record(prm, f, self.parts, depth, k + 1, t,
                                             wall_time=time.perf_counter() - t0))
             if progress is not None:
                 progress(self.history[-1])
@@ -372,7 +277,7 @@ class CoupledPenetration:
         radius = radius[keep]
         n = len(self.x_grains)
         pen, r_pen, self.on_cone, self.material = _cone_and_material(prm, self.x_grains[:, ax].max())
-        self.pen0 = pen.copy()
+        self.pen0, self.parts = pen.copy(), cone_parts(pen, self.on_cone, prm)
         x = np.vstack([self.x_grains, pen])
         r = np.concatenate([radius, np.full(len(pen), r_pen)])
         kind = np.concatenate([np.where(self.kinds == 1, GHOST, 0), np.full(len(pen), GHOST)]).astype(np.int8)
@@ -443,6 +348,9 @@ class CoupledPenetration:
         self.dt_fe = prm.substeps * self.sim.dt
         self.stepper = GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=0.8)
         self.g_prev = self._ghost_motion()
+        # the iterated exchange's accelerator (unused by the loose one); the last step's pairs
+        # are reused: the next step's map is nearly the same
+        self.accelerator = IQNILS(self.interface, prm.relaxation, IQNOptions(reuse=1))
         if saved is not None:
             self._restore_run(saved)
 
@@ -541,55 +449,125 @@ class CoupledPenetration:
     def run(self, progress=None, steps: int | None = None):
         """Push to ``prm.depth`` (or ``steps`` more FE steps), continuing from the current
         state; returns the history of all steps so far."""
-        prm, sim, iface, st = self.prm, self.sim, self.interface, self.stepper
-        check_push(prm, sim.dt)
-        p, dim, ax = sim.p, prm.dim, VERTICAL[prm.dim]
         stop = self.n_steps if steps is None else min(self.n_steps, len(self.history) + steps)
-        n_u = iface.fields[0].prescribed.size
-        clock = time.perf_counter
-        g_current = None   # the ghost motion of the current FE state (from the last step)
-        for k in range(len(self.history), stop):
-            t0 = clock()
-            # ghosts head for the last converged FE state (a one-step lag, no extrapolation:
-            # extrapolating the FE acceleration amplifies the grains' noise)
-            g_prev, g_next = self.g_prev, (self._ghost_motion() if g_current is None else g_current)
-            t_ghosts = clock() - t0
-            st.predict()
-            t_dem = clock()
-            ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0],
-                                 g_next[0], self.dt_fe)
-            self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
-                                   prm.velocity, ax, ghosts)
-            t1 = clock()
-            t_dem = t1 - t_dem
-            u = p.x[: self.n_grains, :dim] - self.x_ref[:, :dim]
-            if self._q_ref is not None:
-                u = u + self._q_ref[:, :dim]
-            # only the displacement part is prescribed from the grains; phi from the FE itself
-            # (grain spins are not a displacement field)
-            old = iface.prescribed_values()
-            D = old.copy()
-            D[:n_u] = iface.project_displacement(u)
-            iface.set_prescribed(old + prm.relaxation * (D - old))
-            t2 = clock()
-            st.solve()
-            st.finish()
-            t3 = clock()
-            g_new = g_current = self._ghost_motion()
-            t4 = clock()
-            mismatch = self._check_ghosts(g_new, g_next, k)
-            # the ghosts continue from where the grains saw them (no jump between FE steps)
-            self.g_prev = g_next
-            f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
-            self.history.append(cone_record(prm, f, self.on_cone, self.depth, k + 1, st.t,
-                                            interface_mismatch=mismatch, dem_time=t_dem,
-                                            wall_time=clock() - t0))
-            self.step_timings.append({"ghost_motion": t_ghosts + t4 - t3, "dem": t_dem,
-                                      "projection": t2 - t1, "fe_solve": t3 - t2,
-                                      "total": self.history[-1]["wall_time"]})
+        while len(self.history) < stop:
+            self.advance()
             if progress is not None:
                 progress(self.history[-1])
         return self.history
+
+    def advance(self) -> dict:
+        """One FE step (the DEM sub-cycle, projection, FE solve); returns its history record."""
+        check_push(self.prm, self.sim.dt)
+        if self.prm.interface == "loose":
+            return self._loose_step()
+        return self._converged_step()
+
+    def _grain_displacement(self) -> np.ndarray:
+        """The free and ghost grains' displacements (n, dim) the projection reads."""
+        dim = self.prm.dim
+        u = self.sim.p.x[: self.n_grains, :dim] - self.x_ref[:, :dim]
+        return u if self._q_ref is None else u + self._q_ref[:, :dim]
+
+    def _converged_step(self) -> dict:
+        """One FE step whose exchange is iterated to ``prm.interface_tol``: the grains are
+        rewound to the step's start (``sim.load_state``) and sub-cycled again with the ghosts
+        heading for the current FE iterate (no lag), the FE re-solved with the projected
+        displacements (only the last FE iterate is committed), the fixed point on the
+        prescribed displacements' increment accelerated by IQN-ILS (:class:`coupling.
+        interface.IQNILS`, pairs of the last step reused). A step that does not converge in
+        ``prm.interface_max_iterations`` keeps its last iterate and is flagged in the history."""
+        prm, sim, iface, st, acc = self.prm, self.sim, self.interface, self.stepper, self.accelerator
+        ax, k, clock = VERTICAL[prm.dim], len(self.history), time.perf_counter
+        t0 = clock()
+        saved, depth0, g_prev = sim.state_dict(), self.depth, self.g_prev
+        st.predict()
+        D = iface.prescribed_values()
+        n_u = iface.fields[0].prescribed.size
+        D_n, x = D[:n_u].copy(), np.zeros(n_u)
+        floor = 1e-6 * prm.radius * np.sqrt(max(iface.comm.allreduce(n_u), 1))
+        acc.new_step()
+        st.solve()
+        t_dem = t_fe = 0.0
+        for it in range(1, prm.interface_max_iterations + 1):
+            g_next = self._ghost_motion()
+            t1 = clock()
+            if it > 1:
+                sim.load_state(saved)
+            ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0],
+                                 self.dt_fe)
+            depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), depth0, prm.velocity,
+                              ax, ghosts)
+            t2 = clock()
+            t_dem += t2 - t1
+            target = iface.project_displacement(self._grain_displacement()) - D_n
+            new, res = acc.update(x, target)
+            if not np.isfinite(res):
+                raise CouplingUnstable(f"interface residual is {res} at FE step {k + 1}")
+            if res < prm.interface_tol or iface.norm(target - x) < floor:
+                break
+            x = new
+            D[:n_u] = D_n + x
+            iface.set_prescribed(D)
+            st.solve()
+            t_fe += clock() - t2
+        converged = bool(res < prm.interface_tol or iface.norm(target - x) < floor)
+        st.finish()
+        self.depth, self.g_prev = depth, g_next
+        mismatch = self._check_ghosts(self._ghost_motion(), g_next, k)
+        f = sim.p.force[self.pen_index] - self.clump_internal
+        self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
+                                        interface_mismatch=mismatch, interface_iterations=it,
+                                        interface_residual=float(res), interface_converged=converged,
+                                        dem_time=t_dem, wall_time=clock() - t0))
+        self.step_timings.append({"dem": t_dem, "fe_solve": t_fe, "total": self.history[-1]["wall_time"],
+                                  "interface_iterations": it})
+        return self.history[-1]
+
+    def _loose_step(self) -> dict:
+        """One FE step of the loose exchange: one DEM sub-cycle, the projection relaxed by
+        ``prm.relaxation``, one FE solve."""
+        prm, sim, iface, st = self.prm, self.sim, self.interface, self.stepper
+        p, ax, k = sim.p, VERTICAL[prm.dim], len(self.history)
+        n_u = iface.fields[0].prescribed.size
+        clock = time.perf_counter
+        t0 = clock()
+        # ghosts head for the last converged FE state (a one-step lag, no extrapolation:
+        # extrapolating the FE acceleration amplifies the grains' noise)
+        g_prev, g_next = self.g_prev, self._ghost_motion()
+        t_ghosts = clock() - t0
+        st.predict()
+        t_dem = clock()
+        ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0],
+                             g_next[0], self.dt_fe)
+        self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
+                               prm.velocity, ax, ghosts)
+        t1 = clock()
+        t_dem = t1 - t_dem
+        u = self._grain_displacement()
+        # only the displacement part is prescribed from the grains; phi from the FE itself
+        # (grain spins are not a displacement field)
+        old = iface.prescribed_values()
+        D = old.copy()
+        D[:n_u] = iface.project_displacement(u)
+        iface.set_prescribed(old + prm.relaxation * (D - old))
+        t2 = clock()
+        st.solve()
+        st.finish()
+        t3 = clock()
+        g_new = self._ghost_motion()
+        t4 = clock()
+        mismatch = self._check_ghosts(g_new, g_next, k)
+        # the ghosts continue from where the grains saw them (no jump between FE steps)
+        self.g_prev = g_next
+        f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
+        self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
+                                        interface_mismatch=mismatch, dem_time=t_dem,
+                                        wall_time=clock() - t0))
+        self.step_timings.append({"ghost_motion": t_ghosts + t4 - t3, "dem": t_dem,
+                                  "projection": t2 - t1, "fe_solve": t3 - t2,
+                                  "total": self.history[-1]["wall_time"]})
+        return self.history[-1]
 
     def _refined_depth(self) -> float:
         """Depth [m] down to which the chamber's mesh is refined to the window's element
@@ -630,7 +608,8 @@ class CoupledPenetration:
         def files(tmp: Path) -> list[str]:
             name = f"continuum_rank{comm.rank}_of{comm.size}.npz"
             np.savez(tmp / name, w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
-                     a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem.last_good)
+                     a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem.last_good,
+                     **{f"iqn.{k}": v for k, v in self.accelerator.state_dict().items()})
             if comm.rank != 0:
                 return [name]
             np.savez(tmp / "grains.npz", **_dem_state(self.sim), x_ref=self.x_ref, pen0=self.pen0,
@@ -688,6 +667,8 @@ class CoupledPenetration:
                                  f"mesh {target.x.array.shape}: different parameters or mesh")
             target.x.array[:] = fe[name]
         self.problem.last_good[:] = fe["last_good"]
+        if "iqn.step" in fe:
+            self.accelerator.load_state({k[4:]: v for k, v in fe.items() if k.startswith("iqn.")})
         st.t = state["t"]
         self.depth = state["depth"]
         self.history = state["history"]

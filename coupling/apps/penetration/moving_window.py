@@ -62,7 +62,6 @@ the coupling counts total displacements from there.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
@@ -73,11 +72,12 @@ from dolfinx import fem
 
 from coupling.apps.penetration.coupled import (
     CoupledPenetration,
-    PenetrationParameters,
     cone_clump,
+    cone_parts,
     cone_record,
     penetrator_clump,
 )
+from coupling.apps.penetration.parameters import MovingWindowParameters, PenetrationParameters
 from coupling.interface import CouplingInterface
 from coupling.locate import owner_ranks
 from coupling.operators import FieldBasis
@@ -95,68 +95,6 @@ __all__ = ["MovingWindowParameters", "MovingWindowPenetration", "tip_near_bottom
            "lattice_fill", "continued_lattice", "push_apart", "field_at", "reference_positions",
            "carry_pair_history", "fe_stress_average", "isotropic_modulus", "servo_growth",
            "scale_radii", "refined_depth"]
-
-
-@dataclass(frozen=True)
-class MovingWindowParameters:
-    """How the DE window follows the tip. Lengths in grain diameters unless stated.
-
-    Attributes:
-        depth: total penetration depth [m] (beyond what the initial window allows).
-        trigger: the window moves when the tip is this close to its bottom.
-        step: how far the bottom moves per move.
-        max_height: largest window height [m] (the Box's extent along the axis, whose top
-            starts above the free surface); None: the window only grows. A top that would lie
-            less than a ghost band below the surface stays where it was.
-        settle_steps: DEM steps of settling after a move (ghosts and cone held).
-        servo_cycles: the second half of the settle is split into this many parts; before
-            each, the radii of the grains being generated are scaled so that their axial
-            stress approaches the target (module docstring, 6.); 0: a plain settle.
-        servo_rate: largest relative radius change per servo cycle (the grains grow by at
-            most ``(1 + servo_rate) ** servo_cycles``).
-        settle_hold: free grains closer than this to the cone are held during the settle
-            too (the cone is paused: left free they would relax away from the tip and the
-            tip force would drop).
-        relax_iterations: geometric push-apart iterations for new grains' overlaps.
-        overlap_tolerance: overlap left after the push-apart, fraction of the mean radius.
-        max_moves: a run stops moving the window after this many moves.
-        seed: of the new grains' lattice jitter and radii.
-        chimney: once the window travels, the grains within this many cone radii of the axis
-            stay grains up to the free surface (:meth:`MovingWindowPenetration.
-            _window_shape`); 0: the whole width becomes continuum behind the tip, under a
-            ghost band.
-    """
-
-    depth: float = 0.08
-    trigger: float = 18.0         # the scene's (benchmarks/results/moving_window.json compares 6-18)
-    step: float = 6.0
-    max_height: float | None = None
-    settle_steps: int = 8000
-    servo_cycles: int = 30
-    servo_rate: float = 0.005
-    settle_hold: float = 4.0
-    relax_iterations: int = 200
-    overlap_tolerance: float = 1e-3
-    max_moves: int = 50
-    seed: int = 7
-    chimney: float = 2.5
-
-    def __post_init__(self):
-        if not (np.isfinite(self.settle_hold) and self.settle_hold >= 0):
-            raise ValueError(f"settle_hold must be >= 0, got {self.settle_hold!r}")
-        if not (np.isfinite(self.chimney) and self.chimney >= 0):
-            raise ValueError(f"chimney must be >= 0 cone radii, got {self.chimney!r}")
-        for name in ("depth", "trigger", "step", "overlap_tolerance"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be > 0, got {v!r}")
-        if self.max_height is not None and not (np.isfinite(self.max_height) and self.max_height > 0):
-            raise ValueError(f"max_height must be None or > 0 m, got {self.max_height!r}")
-        if not (np.isfinite(self.servo_rate) and 0 <= self.servo_rate < 0.5):
-            raise ValueError(f"servo_rate must lie in [0, 0.5), got {self.servo_rate!r}")
-        for name in ("settle_steps", "servo_cycles", "relax_iterations", "max_moves"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
 
 
 # ---- geometry of a move ------------------------------------------------------------------
@@ -384,6 +322,9 @@ class MovingWindowPenetration(CoupledPenetration):
     """
 
     def __init__(self, prm: PenetrationParameters, moving: MovingWindowParameters, comm, log=print):
+        if prm.interface != "loose":
+            raise ValueError(f"interface = {prm.interface!r}: a window that follows the penetrator "
+                             "exchanges loosely (interface = 'loose') so far")
         self.moving = moving   # before the parent's set-up: it sizes the mesh (_refined_depth)
         super().__init__(prm, comm, log=log)
         self._interface_bc = self.problem.bcs[-1]   # appended by the parent's interface
@@ -395,6 +336,7 @@ class MovingWindowPenetration(CoupledPenetration):
         self.depth = 0.0
         self.moves: list[dict] = []
         self._stepper_count = 0
+        self._g_prev = None      # the ghosts' motion the last FE step drove the grains to
         # a shaft long enough for the whole run (the parent sized it for prm.depth)
         rc = prm.cone_radius
         if prm.dim == 2:
@@ -403,6 +345,7 @@ class MovingWindowPenetration(CoupledPenetration):
             pen, r_pen, on_cone = penetrator_clump(prm, moving.depth + 3 * rc)
         pen[:, self.axis] += self.pen0[:, self.axis].min() - pen[:, self.axis].min()
         self.pen0, self.on_cone, self._r_pen = pen, on_cone, r_pen
+        self.parts = cone_parts(pen, on_cone, prm)
         clump = Particles.spheres(pen, r_pen, prm.density, dim=self.sim.p.dim, kind=GHOST)
         self.clump_internal = Simulation(clump, self.material, allow_overlap=True).p.force.copy()
         p, n = self.sim.p, self.n_grains
@@ -883,15 +826,21 @@ class MovingWindowPenetration(CoupledPenetration):
     def run(self, progress=None):
         """Push the cone to ``moving.depth``, moving the window whenever the tip nears its
         bottom. The coupled step is the parent's (ghosts from the FE, projection, SNES)."""
-        g_prev = self.interface.ghost_motion()
-        for k in range(self.n_steps):
-            if self.needs_move():
-                self.move()
-                g_prev = self.interface.ghost_motion()
-            g_prev = self._coupled_step(k, g_prev)
+        while len(self.history) < self.n_steps:
+            self.advance()
             if progress is not None:
                 progress(self.history[-1])
         return self.history
+
+    def advance(self) -> dict:
+        """One FE step on the current window, moved first if the tip nears its bottom."""
+        if self._g_prev is None:
+            self._g_prev = self.interface.ghost_motion()
+        if self.needs_move():
+            self.move()
+            self._g_prev = self.interface.ghost_motion()
+        self._g_prev = self._coupled_step(len(self.history), self._g_prev)
+        return self.history[-1]
 
     def _coupled_step(self, k, g_prev):
         """One FE step of :meth:`CoupledPenetration.run` on the current window."""
@@ -914,7 +863,7 @@ class MovingWindowPenetration(CoupledPenetration):
         g_new = iface.ghost_motion()
         mismatch = self._check_ghosts(g_new, g_next, k)
         f = p.force[self.pen_index] - self.clump_internal
-        self.history.append(cone_record(prm, f, self.on_cone, self.depth, k + 1, st.t,
+        self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
                                         interface_mismatch=mismatch, grains=self.n_grains,
                                         window_bottom=self.regions.window.lo[self.axis],
                                         moves=len(self.moves), wall_time=time.perf_counter() - t0))

@@ -4,14 +4,20 @@ spheres (:func:`dem.rigid.sample_surface`, thinned). Tips at the origin, axis up
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 if TYPE_CHECKING:
     from coupling.apps.penetration.coupled import PenetrationParameters
 
-__all__ = ["cone_clump", "penetrator_clump", "tip_height"]
+__all__ = ["cone_clump", "penetrator_clump", "tip_height", "ConeParts", "cone_parts", "cone_record",
+           "filtered", "SLEEVE_OVER_DIAMETER"]
+
+# ISO 22476-1: a 10 cm^2 cone with a 150 cm^2 friction sleeve just above it, so the sleeve's
+# length is 150 / (4 x 10) = 3.75 cone diameters whatever the cone's size
+SLEEVE_OVER_DIAMETER = 3.75
+VERTICAL = {2: 1, 3: 2}
 
 
 def tip_height(prm: PenetrationParameters) -> float:
@@ -75,3 +81,49 @@ def _thinned(x: np.ndarray, spacing: float) -> np.ndarray:
         if keep[pairs[starts[i]:starts[i + 1], 0]].any():
             keep[i] = False
     return x[keep]
+
+
+class ConeParts(NamedTuple):
+    """Masks over a penetrator clump's spheres: the tip (cone, or the pile's base) and the
+    friction sleeve (the shaft from the cone's base up ``SLEEVE_OVER_DIAMETER`` diameters)."""
+
+    tip: np.ndarray
+    sleeve: np.ndarray
+
+
+def cone_parts(pen: np.ndarray, on_cone: np.ndarray, prm: PenetrationParameters) -> ConeParts:
+    """The :class:`ConeParts` of the clump with centres ``pen`` (any rigid placement, axis
+    vertical) and tip mask ``on_cone``."""
+    z = pen[:, VERTICAL[prm.dim]]
+    top = z[on_cone].max() + SLEEVE_OVER_DIAMETER * 2 * prm.cone_radius   # from the cone's base
+    return ConeParts(on_cone.copy(), ~on_cone & (z <= top))
+
+
+def cone_record(prm: PenetrationParameters, force, parts: ConeParts, depth, step, t, **extra) -> dict:
+    """History entry of the cone readings as ISO 22476-1 defines them, ``force`` (k, 3) being
+    the grains' forces on the clump's spheres: q_c = vertical force on the tip / tip area (2D:
+    the cone's width, per unit thickness; 3D: pi R^2); f_s = vertical force on the friction
+    sleeve / the sleeve's fixed area (2D: its two sides, 2 L; 3D: 2 pi R L), whatever part of
+    it is embedded; the friction ratio R_f = f_s / q_c; ``shaft_force``: the whole shaft's."""
+    ax = VERTICAL[prm.dim]
+    tip_force = float(force[parts.tip, ax].sum())
+    sleeve = float(force[parts.sleeve, ax].sum())
+    R = prm.cone_radius
+    length = SLEEVE_OVER_DIAMETER * 2 * R
+    area, sleeve_area = (2 * R, 2 * length) if prm.dim == 2 else (np.pi * R**2, 2 * np.pi * R * length)
+    q_c, f_s = tip_force / area, sleeve / sleeve_area
+    return {"step": step, "time": t, "depth": depth, "tip_force": tip_force, "q_c": q_c,
+            "sleeve_force": sleeve, "f_s": f_s, "friction_ratio": f_s / q_c if q_c > 0 else 0.0,
+            "shaft_force": float(force[~parts.tip, ax].sum()), **extra}
+
+
+def filtered(history: list[dict], key: str, window: float) -> np.ndarray:
+    """``key`` of the history averaged over a centred depth window [m] (records closer than
+    ``window / 2`` in depth; ends use what they have): the smoothed profile next to the raw
+    one, as CPT logs are shown."""
+    depth = np.array([h["depth"] for h in history])
+    value = np.array([h[key] for h in history], dtype=float)
+    lo = np.searchsorted(depth, depth - window / 2, side="left")
+    hi = np.searchsorted(depth, depth + window / 2, side="right")
+    cum = np.concatenate([[0.0], np.cumsum(value)])
+    return (cum[hi] - cum[lo]) / np.maximum(hi - lo, 1)

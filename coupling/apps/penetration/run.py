@@ -1,10 +1,10 @@
 """Run a coupled penetration with outputs: q_c / f_s against depth (CSV, JSON, PNG), grains
-(VTU/PVD), continuum (VTX), a picture of both, and checkpoints every k FE steps. Used by
+(VTU/PVD), continuum (VTX), a picture of both, and checkpoints every k FE steps (the loop
+and its outputs: :mod:`coupling.runner`). Used by
 ``granfe run`` / ``granfe restart`` (kind ``penetration``) and ``demos/2d/cpt_coupled.py``."""
 
 from __future__ import annotations
 
-import csv
 import json
 import shutil
 import time
@@ -15,78 +15,47 @@ import dolfinx_solver  # noqa: F401
 import numpy as np
 
 from coupling.apps.penetration.coupled import VERTICAL, CoupledPenetration, PenetrationParameters
-from coupling.checkpoints import ensure_free_space
-from coupling.collective_gc import collect, collective_gc
+from coupling.apps.penetration.penetrators import filtered
+from coupling.collective_gc import collective_gc
 from coupling.preflight import memory_mb
+from coupling.runner import Outputs, run_steps, write_history
 
-__all__ = ["run_penetration"]
-
-
-def run_penetration(prm: PenetrationParameters, out: str | Path, comm, **kwargs) -> dict:
-    """Run (or restart) a penetration into ``out``: :func:`_run_penetration`, with cyclic
-    garbage collected at the same points on every rank (:mod:`coupling.collective_gc`)."""
-    with collective_gc(comm):
-        return _run_penetration(prm, out, comm, **kwargs)
+__all__ = ["run_penetration", "PenetrationSteps"]
 
 
-def _run_penetration(  # noqa: C901 (the next to split: one runner for every application)
-    prm: PenetrationParameters, out: str | Path, comm, *, frames: int = 5,
+def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames: int = 5,
                     fields: bool = True, particles: bool = True, png: bool = True,
                     progress: bool = True, log=None, checkpoint_every: int = 0,
                     restart: bool = False, moving=None, checkpoint=None, stop=None,
                     meta: dict | None = None) -> dict:
     """Set up, run and write a coupled penetration into ``out``; returns the results dict.
 
+    The loop, frames, checkpoints and stops are :func:`coupling.runner.run_steps`'s.
     ``checkpoint_every`` > 0 writes ``out/checkpoint`` every that many FE steps (not after the
-    last); ``restart`` continues from it (same parameters and rank count) instead of settling,
-    writing frames as ``*_from<step>`` series next to the first run's. ``moving``
-    (:class:`coupling.apps.penetration.moving_window.MovingWindowParameters`): the window follows the
-    penetrator to ``moving.depth`` (no checkpoints); ``results.json`` then lists the moves.
-    ``checkpoint``: the directory a restart continues from (default ``out/checkpoint``);
-    ``meta`` goes into every checkpoint's manifest (the run's fingerprint). ``stop``
-    (:class:`coupling.interrupts.StopRequests`): after an FE step on which a signal arrived,
-    write a checkpoint and raise :class:`coupling.interrupts.Interrupted`.
+    last); ``restart`` continues from it (same parameters and rank count) instead of settling.
+    ``moving`` (:class:`~coupling.apps.penetration.parameters.MovingWindowParameters`): the
+    window follows the penetrator to ``moving.depth`` (no checkpoints); ``results.json`` then
+    lists the moves. ``checkpoint``: the directory a restart continues from (default
+    ``out/checkpoint``); ``meta`` goes into every checkpoint's manifest (the run's
+    fingerprint); ``stop`` (:class:`coupling.interrupts.StopRequests`): after an FE step on
+    which a signal arrived, write a checkpoint and raise
+    :class:`coupling.interrupts.Interrupted`.
     """
-    from coupling.apps.penetration.coupled import CouplingUnstable
-    from coupling.interrupts import Interrupted
-    from dem.errors import BlowUpError, DemError
-    from dem.io import ParticleWriter, save_state
-    from granfe.io import ContinuumWriter
-
     out = Path(out)
     checkpoint = out / "checkpoint" if checkpoint is None else Path(checkpoint)
     if restart and not (checkpoint / "state.json").exists():
         raise FileNotFoundError(f"no complete checkpoint in {checkpoint} to restart from "
                                 "(output.checkpoint_every = 0, or the run stopped before the first)")
+    if moving is not None and (restart or checkpoint_every):
+        raise ValueError("a window that follows the penetrator writes no checkpoints yet: "
+                         "checkpoint_every must be 0 and restart False")
     log = log or (lambda msg: print(msg, flush=True) if comm.rank == 0 else None)
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
     comm.barrier()
     t0 = time.perf_counter()
-    if moving is not None and (restart or checkpoint_every):
-        raise ValueError("a window that follows the penetrator writes no checkpoints yet: "
-                         "checkpoint_every must be 0 and restart False")
-    try:
-        if moving is None:
-            cpt = CoupledPenetration(prm, comm, log=log, checkpoint=checkpoint if restart else None)
-        else:
-            from coupling.apps.penetration.moving_window import MovingWindowPenetration
-            cpt = MovingWindowPenetration(prm, moving, comm, log=log)
-    except (BlowUpError, DemError, FloatingPointError, ValueError) as err:
-        if restart:   # the grains are the unsettled lattice: nothing worth keeping
-            raise RuntimeError(f"restart from {checkpoint} failed: {err}") from err
-        # failed while settling or deriving the continuum: keep the grains' last good state
-        where = out / "last_good"
-        path, grains = getattr(err, "path", None), getattr(err, "grains", None)
-        kept = bool(path and Path(path).exists()) or grains is not None
-        if comm.rank == 0 and kept:
-            where.mkdir(parents=True, exist_ok=True)
-            if path and Path(path).exists():  # a blow-up: the state before it, not the NaNs
-                shutil.move(path, where / "grains.npz")
-            else:
-                save_state(where / "grains.npz", **grains)
-        raise RuntimeError(f"penetration set-up failed: {err}"
-                           + (f"; the grains' last state is in {where}" if kept else "")) from err
+    with collective_gc(comm):
+        cpt = _set_up(prm, comm, log, moving, checkpoint if restart else None, out)
     t_setup = time.perf_counter() - t0
     start = len(cpt.history)
     m = cpt.material_fe
@@ -94,69 +63,17 @@ def _run_penetration(  # noqa: C901 (the next to split: one runner for every app
         f"coordination {cpt.contact_stats['coordination']:.2f}; continuum lam = mu = {m.lam:.3g} Pa, "
         f"kappa = {m.kappa:.3g} Pa, rho = {m.rho:.0f} kg/m^3, "
         f"{cpt.problem.V.dofmap.index_map.size_global * cpt.problem.V.dofmap.index_map_bs} dofs")
-    suffix = f"_from{start:04d}" if start else ""
-    grains = ParticleWriter(out, "grains" + suffix) if (particles and comm.rank == 0) else None
-    writer = ContinuumWriter(cpt.problem, out, name="continuum" + suffix) if fields else None
-    n_steps = cpt.n_steps
-    every = max(1, n_steps // frames)
-    bar = None
-    if progress and comm.rank == 0:
-        from tqdm import tqdm
-        bar = tqdm(total=n_steps, initial=start, unit="FE step", desc="penetration")
-
-    def on_step(h):
-        if bar is not None:
-            bar.set_postfix(depth=f"{h['depth'] * 1e3:.1f} mm", q_c=f"{h['q_c'] / 1e3:.2f} kPa",
-                            step=f"{h['wall_time']:.2f} s")
-            bar.update(1)
-        saved = checkpoint_every and h["step"] % checkpoint_every == 0 and h["step"] != n_steps
-        frame = not (h["step"] % every and h["step"] != n_steps)
-        if saved or frame:
-            ensure_free_space(out, comm, "checkpoint" if saved else "frame")
-        if saved:
-            cpt.save_checkpoint(out / "checkpoint", meta=meta)
-        if frame:
-            collect(comm)
-            if writer is not None:
-                writer.write(h["time"])
-            if grains is not None:
-                p = cpt.sim.p
-                grains.write(h["time"], p.x, p.radius, velocity=p.v, kind=p.kind.astype(float),
-                             force=p.force)
-        signum = stop.requested(comm) if stop is not None else 0
-        if signum and h["step"] != n_steps:
-            if moving is not None:   # a window that follows the penetrator writes no checkpoints
-                raise Interrupted(signum, h["step"], None, out)
-            if not saved:
-                cpt.save_checkpoint(out / "checkpoint", meta=meta)
-            raise Interrupted(signum, h["step"], out / "checkpoint", out)
-
+    outputs = Outputs(frame_every=max(1, cpt.n_steps // frames), fields=fields, particles=particles,
+                      png=png, checkpoint_every=checkpoint_every)
     t0 = time.perf_counter()
-    try:
-        history = cpt.run(progress=on_step)
-    except Interrupted:
-        for w in (writer, grains):
-            if w is not None:
-                w.close()
-        raise
-    except (BlowUpError, DemError, CouplingUnstable, FloatingPointError, ValueError) as err:
-        where = out / "last_good"
-        cpt.problem.write_checkpoint(where)
-        if comm.rank == 0:
-            save_state(where / "grains.npz", **cpt.sim.p.state_dict())
-            (out / "history.json").write_text(json.dumps({"steps": cpt.history}, indent=2, default=float))
-        raise RuntimeError(f"penetration stopped at depth {cpt.history[-1]['depth'] if cpt.history else 0:.4g} m: "
-                           f"{err}; the last state and the history so far are in {where}") from err
-    finally:
-        if bar is not None:
-            bar.close()
+    history = run_steps(PenetrationSteps(cpt, moving is None), out, comm, outputs, progress=progress,
+                        stop=stop, meta=meta)
     t_run = time.perf_counter() - t0
-    if writer is not None:
-        writer.close()
-    if grains is not None:
-        grains.close()
-    if png:
-        _picture(cpt, out / "cpt.png")
+    # the smoothed profiles beside the raw ones, over one cone diameter
+    window = 2 * prm.cone_radius
+    for key in ("q_c", "f_s"):
+        for h, v in zip(history, filtered(history, key, window), strict=True):
+            h[f"{key}_filtered"] = float(v)
     pushed = history[start:]
     results = {"parameters": prm.__dict__, "grains": cpt.n_grains,
                "penetrator_spheres": len(cpt.pen_index),
@@ -168,30 +85,112 @@ def _run_penetration(  # noqa: C901 (the next to split: one runner for every app
                "fe_steps_run": len(pushed), "restarted_from_step": start,
                "wall_time_per_fe_step_s": float(np.median([h["wall_time"] for h in pushed])) if pushed else None,
                "ranks": comm.size, "history": history, "window_moves": getattr(cpt, "moves", []),
-               "q_c_mean_last_half": float(np.mean([h["q_c"] for h in history[len(history) // 2:]]))}
+               "q_c_mean_last_half": float(np.mean([h["q_c"] for h in history[len(history) // 2:]])),
+               "filter_window_m": window}
     if comm.rank == 0:
-        (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
-        with open(out / "tip_resistance.csv", "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=list(history[0]))
-            wr.writeheader()
-            wr.writerows(history)
+        write_history(out, history, PenetrationSteps.history_name)
         if png:
             _curves(history, out / "tip_resistance.png")
+        (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
         log(f"{len(pushed)} FE steps, {cpt.sim.nsteps} DEM steps in {t_run:.1f} s; outputs in {out}")
     return results
 
 
+def _set_up(prm, comm, log, moving, checkpoint, out):
+    """The coupled penetration, settled (or read from ``checkpoint``); a failure while
+    settling or deriving the continuum keeps the grains' last good state in ``out/last_good``."""
+    from dem.errors import BlowUpError, DemError
+    from dem.io import save_state
+
+    try:
+        if moving is None:
+            return CoupledPenetration(prm, comm, log=log, checkpoint=checkpoint)
+        from coupling.apps.penetration.moving_window import MovingWindowPenetration
+        return MovingWindowPenetration(prm, moving, comm, log=log)
+    except (BlowUpError, DemError, FloatingPointError, ValueError) as err:
+        if checkpoint is not None:   # the grains are the unsettled lattice: nothing worth keeping
+            raise RuntimeError(f"restart from {checkpoint} failed: {err}") from err
+        where = out / "last_good"
+        path, grains = getattr(err, "path", None), getattr(err, "grains", None)
+        kept = bool(path and Path(path).exists()) or grains is not None
+        if comm.rank == 0 and kept:
+            where.mkdir(parents=True, exist_ok=True)
+            if path and Path(path).exists():  # a blow-up: the state before it, not the NaNs
+                shutil.move(path, where / "grains.npz")
+            else:
+                save_state(where / "grains.npz", **grains)
+        raise RuntimeError(f"penetration set-up failed: {err}"
+                           + (f"; the grains' last state is in {where}" if kept else "")) from err
+
+
+class PenetrationSteps:
+    """A built :class:`CoupledPenetration` (or moving-window run) as the runner's
+    :class:`coupling.runner.Steps`: one FE step per step, q_c / f_s per record."""
+
+    name, unit, history_name, particle_name = "penetration", "FE step", "tip_resistance", "grains"
+
+    def __init__(self, cpt: CoupledPenetration, checkpoints: bool):
+        from coupling.apps.penetration.coupled import CouplingUnstable
+        from dem.errors import BlowUpError, DemError
+
+        self.cpt, self.checkpoints = cpt, checkpoints
+        self.problem, self.history, self.n_steps = cpt.problem, cpt.history, cpt.n_steps
+        self.failures = (BlowUpError, DemError, CouplingUnstable, FloatingPointError, ValueError)
+
+    def advance(self) -> dict:
+        return self.cpt.advance()
+
+    def frame_time(self, record: dict) -> float:
+        return float(record["time"])
+
+    def particles(self) -> dict:
+        p = self.cpt.sim.p
+        return {"x": p.x, "radius": p.radius, "velocity": p.v, "kind": p.kind.astype(float), "force": p.force}
+
+    def postfix(self, record: dict) -> dict:
+        return {"depth": f"{record['depth'] * 1e3:.1f} mm", "q_c": f"{record['q_c'] / 1e3:.2f} kPa",
+                "step": f"{record['wall_time']:.2f} s"}
+
+    def save_checkpoint(self, directory: Path, meta: dict | None) -> None:
+        if self.checkpoints:
+            self.cpt.save_checkpoint(directory, meta=meta)
+
+    def save_last_good(self, where: Path) -> None:
+        from dem.io import save_state
+
+        self.cpt.problem.write_checkpoint(where)
+        if self.cpt.comm.rank == 0:
+            save_state(where / "grains.npz", **self.cpt.sim.p.state_dict())
+
+    def stopped(self, err: BaseException, where: Path) -> str:
+        depth = self.history[-1]["depth"] if self.history else 0.0
+        return (f"penetration stopped at depth {depth:.4g} m: {err}; the last state and the "
+                f"history so far are in {where}")
+
+    def figures(self, out: Path) -> None:
+        _picture(self.cpt, out / "cpt.png")
+
+
 def _curves(history, path):
+    """q_c, f_s (raw and filtered) and the friction ratio against depth, as CPT logs are drawn."""
     import matplotlib.pyplot as plt
 
     depth = np.array([h["depth"] for h in history]) * 100
-    fig, axes = plt.subplots(1, 2, figsize=(8, 5), sharey=True)
-    axes[0].plot([h["q_c"] / 1e3 for h in history], depth)
-    axes[0].set_xlabel("tip resistance q_c [kPa]")
+    fig, axes = plt.subplots(1, 3, figsize=(10, 5), sharey=True)
+    for ax, key, label in ((axes[0], "q_c", "tip resistance q_c [kPa]"),
+                           (axes[1], "f_s", "sleeve friction f_s [kPa]")):
+        ax.plot([h[key] / 1e3 for h in history], depth, color="0.7", lw=0.8, label="raw")
+        if f"{key}_filtered" in history[0]:
+            ax.plot([h[f"{key}_filtered"] / 1e3 for h in history], depth, color="C0",
+                    label="over one cone diameter")
+        ax.set_xlabel(label)
+    axes[0].legend(loc="lower left")
+    if "q_c_filtered" in history[0]:
+        rf = [100 * h["f_s_filtered"] / h["q_c_filtered"] if h["q_c_filtered"] > 0 else np.nan for h in history]
+        axes[2].plot(rf, depth)
+    axes[2].set_xlabel("friction ratio f_s / q_c [%]")
     axes[0].set_ylabel("depth [cm]")
     axes[0].invert_yaxis()
-    axes[1].plot([h["f_s"] / 1e3 for h in history], depth)
-    axes[1].set_xlabel("sleeve friction f_s [kPa]")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -1,4 +1,5 @@
-"""Run a scene: load stepping, cut-back on failure, outputs, checkpoints and restart.
+"""Run a ``bonded_punch`` scene: load stepping with cut-back on failure; the loop, outputs,
+checkpoints and restart are :mod:`coupling.runner`'s.
 
 Output directory layout::
 
@@ -6,7 +7,7 @@ Output directory layout::
     run.json              the run's fingerprint (coupling.rundir): the directory is this run's
     history.json / .csv   settlement, punch force, iterations, wall time per step
     continuum_*.bp        VTX series of u, phi, sigma, m (ParaView)
-    particles/*.vtu, particles.pvd
+    particles_*.vtu, particles.pvd   the grains (displacement, rotation, kind), one series
     checkpoint/           last converged state (FE dofs per rank, step index, manifest.json
                           with sha256s; coupling.checkpoints), checkpoint.prev/ the one before
     last_good/            the last converged state of a failed solve
@@ -15,7 +16,6 @@ Output directory layout::
 
 from __future__ import annotations
 
-import csv
 import json
 import time
 from pathlib import Path
@@ -27,37 +27,13 @@ import numpy as np
 
 from coupling.apps.punch.model import coupled_window, fe_block, lattice_block
 from coupling.apps.punch.scene import Scene
-from coupling.checkpoints import ensure_free_space
-from coupling.collective_gc import collect, collective_gc
 from coupling.preflight import memory_mb
+from coupling.runner import Outputs, RunStopped, run_steps
 from coupling.scene import load_scene
 from coupling.staggered import InterfaceDidNotConverge, StaggeredOptions
 from granfe.solvers import SolveDidNotConverge
 
-__all__ = ["run_scene", "restart_scene", "execute", "summarise_punch", "RunStopped"]
-
-
-class RunStopped(RuntimeError):
-    """A step failed after all cut-backs; the message says where the last good state is."""
-
-
-def _write_particles(out: Path, step: int, t: float, x, u, theta, kinds, series: list):
-    import meshio
-
-    out.mkdir(parents=True, exist_ok=True)
-    name = f"particles_{step:05d}.vtu"
-    pts = x.copy()
-    pts[:, :2] += u
-    u3 = np.zeros((len(x), 3))
-    u3[:, :2] = u
-    meshio.write(out / name, meshio.Mesh(pts, [("vertex", np.arange(len(x))[:, None])],
-                                         point_data={"displacement": u3, "rotation": theta,
-                                                     "kind": kinds.astype(np.int32)}))
-    series.append((t, f"particles/{name}"))
-    entries = "\n".join(f'    <DataSet timestep="{tt:.9g}" file="{f}"/>' for tt, f in series)
-    (out.parent / "particles.pvd").write_text(
-        '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n  <Collection>\n'
-        f"{entries}\n  </Collection>\n</VTKFile>\n")
+__all__ = ["run_scene", "restart_scene", "execute", "summarise_punch", "RunStopped", "PunchSteps"]
 
 
 def summarise_punch(scene, ranks: int = 1) -> dict:
@@ -89,139 +65,118 @@ def summarise_punch(scene, ranks: int = 1) -> dict:
     }
 
 
-def run_scene(scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, **kwargs) -> dict:
-    """Run a ``bonded_punch`` scene: :func:`_run_scene`, with cyclic garbage collected at the
-    same points on every rank (:mod:`coupling.collective_gc`)."""
-    with collective_gc(comm):
-        return _run_scene(scene, out, comm, **kwargs)
-
-
-def _run_scene(  # noqa: C901 (the next to split: one runner for every application)
-    scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
+def run_scene(scene: Scene, out: str | Path, comm=MPI.COMM_WORLD, progress: bool = True,
               start_step: int = 0, checkpoint: str | Path | None = None, stop=None,
               meta: dict | None = None) -> dict:
-    """Run a ``bonded_punch`` scene into ``out``; returns the history.
-
-    A checkpoint (:mod:`coupling.checkpoints`, ``meta`` in its manifest) is written before
-    the first step and after every step; ``start_step`` > 0 continues from ``checkpoint``
-    (default ``out/checkpoint``). ``stop`` (:class:`coupling.interrupts.StopRequests`): after
-    a step on which a signal arrived, raise :class:`coupling.interrupts.Interrupted`."""
-    from coupling.checkpoints import write_checkpoint
-    from coupling.interrupts import Interrupted
-
+    """Run a ``bonded_punch`` scene into ``out`` (:func:`coupling.runner.run_steps`); returns
+    the history. A checkpoint is written before the first step and after every step;
+    ``start_step`` > 0 continues from ``checkpoint`` (default ``out/checkpoint``)."""
     out = Path(out)
-    checkpoint = out / "checkpoint" if checkpoint is None else Path(checkpoint)
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         if not start_step:
             (out / "scene.toml").write_text(scene.to_toml())
     comm.barrier()
-    g, p, w, pen, s = scene.geometry, scene.particles, scene.window, scene.penetrator, scene.solver
-    block = lattice_block(g.width, g.height, p.radius, p.kn, p.kt, p.kr_factor, pen.width)
-    # a failed solve writes its last converged state here (the checkpoints stay intact)
-    problem = fe_block(comm, block, g.element_size, (g.degree_u, g.degree_phi), prefix="scene_",
-                       checkpoint_dir=out / "last_good")
-    run = coupled_window(block, problem, w.half_width, w.depth, w.ghost_width * 2 * p.radius,
-                         w.handshake * g.element_size,
-                         StaggeredOptions(tol=s.tol, max_iterations=s.max_iterations))
-    history_path = out / "history.json"
-    history = []
-    if start_step and history_path.exists():
-        # rows after the checkpoint's step (written before a kill) are computed again
-        rows = json.loads(history_path.read_text())["steps"]
-        history = [h for h in rows if h["step"] <= start_step]
-    if start_step:
-        problem.read_checkpoint(checkpoint)
+    steps = PunchSteps(scene, out, comm, start_step,
+                       out / "checkpoint" if checkpoint is None else Path(checkpoint))
+    outputs = Outputs(frame_every=scene.output.every, fields=scene.output.fields,
+                      particles=scene.output.particles, png=scene.output.png, checkpoint_every=1,
+                      checkpoint_at_start=True, checkpoint_at_end=True)
+    history = run_steps(steps, out, comm, outputs, progress=progress, stop=stop, meta=meta,
+                        header={"scene": scene.to_dict()})
+    return {"steps": history}
 
-    def save(step: int):
-        def files(tmp: Path) -> list[str]:
-            problem.write_checkpoint(tmp)
-            names = [f"continuum_rank{comm.rank}_of{comm.size}.npz"]
-            if comm.rank == 0:
-                (tmp / "state.json").write_text(json.dumps({"step": step}))
-                names.append("state.json")
-            return names
-        write_checkpoint(out / "checkpoint", step, comm, files, meta=meta)
 
-    if not start_step:
-        save(0)   # the initial state: a failure in step 1 can be continued after a fix
-    writer = None
-    if scene.output.fields:
-        from granfe.io import ContinuumWriter
-        writer = ContinuumWriter(problem, out, name=f"continuum_from{start_step:04d}")
-    # the particle frames of the steps before the restart stay in particles.pvd
-    series: list = _pvd_entries(out / "particles.pvd", start_step) if start_step else []
-    bar = None
-    if progress and comm.rank == 0:
-        from tqdm import tqdm
-        bar = tqdm(total=pen.steps, initial=start_step, unit="step", desc=scene.scene.name)
-    settled = pen.settlement * start_step / pen.steps
-    for step in range(start_step, pen.steps):
-        target = pen.settlement * (step + 1) / pen.steps
+class PunchSteps:
+    """The punch pressed in ``penetrator.steps`` equal settlements, each cut back (halved)
+    up to ``solver.cutbacks`` times when the staggered iteration or a solve fails
+    (:class:`coupling.runner.Steps`)."""
+
+    unit, history_name, particle_name, failures = "step", "history", "particles", ()
+
+    def __init__(self, scene: Scene, out: Path, comm, start_step: int, checkpoint: Path):
+        self.scene, self.out, self.comm, self.name = scene, out, comm, scene.scene.name
+        g, p, w, pen, s = scene.geometry, scene.particles, scene.window, scene.penetrator, scene.solver
+        self.block = lattice_block(g.width, g.height, p.radius, p.kn, p.kt, p.kr_factor, pen.width)
+        # a failed solve writes its last converged state here (the checkpoints stay intact)
+        self.problem = fe_block(comm, self.block, g.element_size, (g.degree_u, g.degree_phi),
+                                prefix="scene_", checkpoint_dir=out / "last_good")
+        self.run = coupled_window(self.block, self.problem, w.half_width, w.depth,
+                                  w.ghost_width * 2 * p.radius, w.handshake * g.element_size,
+                                  StaggeredOptions(tol=s.tol, max_iterations=s.max_iterations))
+        self.n_steps = pen.steps
+        self.history: list[dict] = []
+        if start_step:
+            self.problem.read_checkpoint(checkpoint)
+            state = json.loads((checkpoint / "state.json").read_text())
+            # rows after the checkpoint's step (written before a kill) are computed again
+            rows = state.get("history")
+            if rows is None and (out / "history.json").exists():   # a checkpoint of an older run
+                rows = json.loads((out / "history.json").read_text())["steps"]
+            self.history = [h for h in rows or [] if h["step"] <= start_step]
+
+    def advance(self) -> dict:
+        pen, s = self.scene.penetrator, self.scene.solver
+        step = len(self.history)
+        settled, target = pen.settlement * step / pen.steps, pen.settlement * (step + 1) / pen.steps
         t0 = time.perf_counter()
         increments, done = 1, settled
         while done < target - 1e-15 * pen.settlement:
             trial = min(target, done + (target - settled) / increments)
             try:
-                its = run.press(trial)
+                its = self.run.press(trial)
                 done = trial
             except (InterfaceDidNotConverge, SolveDidNotConverge) as err:
                 increments *= 2
                 if increments > 2**s.cutbacks:
-                    problem.write_checkpoint()
+                    self.problem.write_checkpoint()
                     raise RunStopped(
                         f"step {step + 1} (settlement {trial:.4g} m) failed after {s.cutbacks} "
                         f"cut-backs: {err}. Last good state (step {step}) is the checkpoint in "
-                        f"{out / 'checkpoint'}; continue with `granfe restart {out}` after "
-                        f"changing solver.* (or penetrator.steps) in {out / 'scene.toml'}") from err
-        settled = target
-        elapsed = time.perf_counter() - t0
-        history.append({"step": step + 1, "settlement": target, "punch_force": run.punch_force(),
-                        "iterations": its, "wall_time_s": elapsed})
-        if step % scene.output.every == 0 or step + 1 == pen.steps:
-            ensure_free_space(out, comm, "frame")
-            collect(comm)
-            if writer is not None:
-                writer.write(float(step + 1))
-            if scene.output.particles and comm.rank == 0:
-                x = run.particles.assembly.x
-                _write_particles(out / "particles", step + 1, float(step + 1), x, run.coupling.u,
-                                 run.coupling.theta, run.coupling.kinds, series)
-        if comm.rank == 0:
-            history_path.write_text(json.dumps({"scene": scene.to_dict(), "steps": history}, indent=2))
-            with open(out / "history.csv", "w", newline="") as f:
-                wr = csv.DictWriter(f, fieldnames=list(history[0]))
-                wr.writeheader()
-                wr.writerows(history)
-        save(step + 1)
-        if bar is not None:
-            bar.set_postfix(settlement=f"{target:.3g} m", force=f"{history[-1]['punch_force']:.3g} N/m",
-                            step_time=f"{elapsed:.2f} s")
-            bar.update(1)
-        signum = stop.requested(comm) if stop is not None else 0
-        if signum and step + 1 < pen.steps:
-            if bar is not None:
-                bar.close()
-            if writer is not None:
-                writer.close()
-            raise Interrupted(signum, step + 1, out / "checkpoint", out)
-    if bar is not None:
-        bar.close()
-    if writer is not None:
-        writer.close()
-    if scene.output.png:
-        _figures(out, problem, run, history, comm)
-    return {"steps": history}
+                        f"{self.out / 'checkpoint'}; continue with `granfe restart {self.out}` after "
+                        f"changing solver.* (or penetrator.steps) in {self.out / 'scene.toml'}") from err
+        self.history.append({"step": step + 1, "settlement": target, "punch_force": self.run.punch_force(),
+                             "iterations": its, "wall_time_s": time.perf_counter() - t0})
+        return self.history[-1]
 
+    def frame_time(self, record: dict) -> float:
+        return float(record["step"])
 
-def _pvd_entries(path: Path, last_step: int) -> list:
-    """(time, file) of the frames in a ``.pvd`` collection up to ``last_step``."""
-    import re
+    def particles(self) -> dict:
+        c = self.run.coupling
+        x = self.run.particles.assembly.x.copy()
+        x[:, :2] += c.u
+        u3 = np.zeros((len(x), 3))
+        u3[:, :2] = c.u
+        return {"x": x, "radius": np.full(len(x), self.scene.particles.radius), "displacement": u3,
+                "rotation": np.asarray(c.theta, dtype=float), "kind": c.kinds.astype(float)}
 
-    if not path.exists():
-        return []
-    entries = re.findall(r'<DataSet timestep="([^"]+)" file="([^"]+)"/>', path.read_text())
-    return [(float(t), f) for t, f in entries if float(t) <= last_step + 1e-9]
+    def postfix(self, record: dict) -> dict:
+        return {"settlement": f"{record['settlement']:.3g} m", "force": f"{record['punch_force']:.3g} N/m",
+                "step_time": f"{record['wall_time_s']:.2f} s"}
+
+    def save_checkpoint(self, directory: Path, meta: dict | None) -> None:
+        from coupling.checkpoints import write_checkpoint
+
+        comm, step = self.comm, len(self.history)
+
+        def files(tmp: Path) -> list[str]:
+            self.problem.write_checkpoint(tmp)
+            names = [f"continuum_rank{comm.rank}_of{comm.size}.npz"]
+            if comm.rank == 0:
+                (tmp / "state.json").write_text(json.dumps({"step": step, "history": self.history}))
+                names.append("state.json")
+            return names
+        write_checkpoint(directory, step, comm, files, meta=meta)
+
+    def save_last_good(self, where: Path) -> None:
+        self.problem.write_checkpoint(where)
+
+    def stopped(self, err: BaseException, where: Path) -> str:
+        return f"{err}; the last good state is in {where}"
+
+    def figures(self, out: Path) -> None:
+        _figures(out, self.problem, self.run, self.history, self.comm)
 
 
 def _figures(out, problem, run, history, comm):

@@ -1,0 +1,209 @@
+"""Parameters of a penetration run, stated once: defaults, units and validation.
+
+The scene tables (:mod:`coupling.apps.penetration.scene`) take their defaults from these
+fields and name them by ``section.key`` (field metadata), so a default, a range or a message
+lives in one place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dem.timestep import DEFAULT_SAFETY
+
+__all__ = ["PenetrationParameters", "MovingWindowParameters", "VERTICAL"]
+
+VERTICAL = {2: 1, 3: 2}   # index of the vertical (penetration) axis
+
+
+@dataclass(frozen=True)
+class PenetrationParameters:
+    """All lengths in m, times in s. Defaults: a 2 cm cone into ~1000 disks of 1.5 mm (2D).
+
+    In 3D (``dim = 3``) ``chamber_width`` is the chamber's diameter, the window is the square
+    prism ``|x|, |y| <= window_half_width`` of depth ``window_depth``, the grains are
+    Hertz-Mindlin spheres of Young's modulus ``youngs_modulus`` (``kn`` and ``kt_over_kn``
+    are 2D only), and ``shape`` is ``"cone"`` (apex ``apex_deg``) or ``"pile"`` (flat end),
+    both of radius ``cone_radius``.
+    """
+
+    chamber_width: float = 0.3
+    chamber_depth: float = 0.2
+    window_half_width: float = 0.04
+    window_depth: float = 0.08
+    ghost_width: float = 2.5          # grain diameters
+    handshake: float = 2.0            # elements (1 is at the edge of stability)
+    element_size_window: float = 0.008
+    element_size_far: float = 0.04
+    radius: float = 1.5e-3
+    jitter: float = 0.1               # radius reduction, fraction (no initial overlap)
+    kn: float = 2.0e5                 # linear contact stiffness [N/m per m thickness] (2D)
+    kt_over_kn: float = 0.5
+    nu: float = 0.25
+    density: float = 2650.0
+    friction: float = 0.5
+    restitution: float = 0.5
+    cone_radius: float = 0.01
+    apex_deg: float = 60.0
+    velocity: float = 0.2
+    depth: float = 0.04
+    substeps: int = 50
+    relaxation: float = 0.3           # of the prescribed values D^ per FE step
+    # "loose": one exchange per FE step, relaxed; "iqn-ils": the exchange iterated within the
+    # FE step (DEM rewound each time) to interface_tol, accelerated by interface quasi-Newton
+    interface: str = "loose"
+    interface_tol: float = 1e-3       # relative change of the prescribed displacements
+    interface_max_iterations: int = 15
+    settle_time: float = 0.3
+    gravity: float = 9.81
+    seed: int = 1
+    dim: int = 2
+    shape: str = "cone"
+    # Hertz-Mindlin spheres (3D): quartz E = 2.9e10 Pa (seed 002 Table 1) scaled by 1e-3, so
+    # that the explicit step is ~30x longer; contact stiffness, and q_c with it, scale down
+    youngs_modulus: float = 2.9e7
+    # stability studies (benchmarks/stability.py): the DEM step times dt_factor (past the
+    # critical step above 1 / safety: 20 for the 2D linear law, 5 in 3D) and the continuum's
+    # constants times continuum_stiffness (1: consistent with the grains)
+    dt_factor: float = 1.0
+    continuum_stiffness: float = 1.0
+
+    def __post_init__(self):
+        self._check_values()
+        self._check_geometry()
+
+    def _check_values(self):
+        """Each value on its own: signs, ranges, choices."""
+        for name in ("chamber_width", "chamber_depth", "window_half_width", "window_depth",
+                     "ghost_width", "handshake", "element_size_window", "element_size_far",
+                     "radius", "kn", "density", "cone_radius", "velocity", "depth", "settle_time",
+                     "youngs_modulus", "dt_factor", "continuum_stiffness"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be > 0, got {v!r}")
+        if self.ghost_width < 1.0:
+            raise ValueError(f"ghost_width = {self.ghost_width} grain diameters is too thin: the "
+                             "ghost band holds the window's grains (>= 1 diameter)")
+        for name in ("friction", "kt_over_kn"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must lie in [0, inf), got {v!r}")
+        if not (0.0 < self.restitution <= 1.0):
+            raise ValueError(f"restitution must lie in (0, 1], got {self.restitution!r}")
+        if not (-1.0 < self.nu < 0.5):
+            raise ValueError(f"nu must lie in (-1, 0.5), got {self.nu!r}")
+        if not np.isfinite(self.gravity):
+            raise ValueError(f"gravity must be finite, got {self.gravity!r}")
+        if not (isinstance(self.seed, int | np.integer) and self.seed >= 0):
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        if not (10.0 <= self.apex_deg <= 180.0):
+            raise ValueError(f"apex_deg must lie in [10, 180] degrees, got {self.apex_deg!r}")
+        if not 0 < self.relaxation <= 1:
+            raise ValueError(f"relaxation must lie in (0, 1], got {self.relaxation!r}")
+        if self.dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {self.dim!r}")
+        if self.shape not in ("cone", "pile"):
+            raise ValueError(f"shape must be 'cone' or 'pile', got {self.shape!r}")
+        if not 0 <= self.jitter < 0.5:
+            raise ValueError(f"jitter must lie in [0, 0.5), got {self.jitter!r}")
+        law = "linear" if self.dim == 2 else "hertz_mindlin"
+        if self.dt_factor * DEFAULT_SAFETY[law] > 1.0:
+            raise ValueError(f"dt_factor = {self.dt_factor} puts the DEM step above the critical "
+                             f"step of the {law} law (the default is {DEFAULT_SAFETY[law]} of it: "
+                             f"dt_factor <= {1 / DEFAULT_SAFETY[law]:g})")
+        if self.substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {self.substeps!r}")
+        if self.interface not in ("loose", "iqn-ils"):
+            raise ValueError(f"interface must be 'loose' or 'iqn-ils', got {self.interface!r}")
+        if not 0 < self.interface_tol < 1:
+            raise ValueError(f"interface_tol must lie in (0, 1), got {self.interface_tol!r}")
+        if not (isinstance(self.interface_max_iterations, int) and self.interface_max_iterations >= 1):
+            raise ValueError(f"interface_max_iterations must be an integer >= 1, "
+                             f"got {self.interface_max_iterations!r}")
+
+    def _check_geometry(self):
+        """The sizes against each other: mesh, window, cone, chamber."""
+        if self.element_size_window > self.element_size_far:
+            raise ValueError(f"element_size_window = {self.element_size_window} is coarser than "
+                             f"element_size_far = {self.element_size_far}: the mesh is refined "
+                             "toward the window, not away from it")
+        if self.element_size_far > min(self.chamber_width, self.chamber_depth):
+            raise ValueError(f"element_size_far = {self.element_size_far} is larger than the chamber "
+                             f"(chamber_width = {self.chamber_width}, chamber_depth = {self.chamber_depth})")
+        if self.shape == "pile" and self.dim == 2:
+            raise ValueError("shape = 'pile' needs dim = 3 (the 2D penetrator is a cone's section)")
+        if self.window_half_width <= 2 * self.cone_radius:
+            raise ValueError(f"window_half_width = {self.window_half_width} must exceed twice the "
+                             f"cone radius ({self.cone_radius}): the cone must stay inside the window")
+        if self.depth + self.cone_radius * 2 >= self.window_depth:
+            raise ValueError(f"depth = {self.depth} m leaves the cone too close to the window base "
+                             f"(window_depth = {self.window_depth} m)")
+        reach = self.window_half_width + (self.ghost_width + 1) * 2 * self.radius
+        if reach * (np.sqrt(2) if self.dim == 3 else 1.0) >= self.chamber_width / 2:
+            raise ValueError("the window and its ghost band must lie inside the chamber "
+                             f"(chamber_width = {self.chamber_width} m is too small)")
+
+
+
+@dataclass(frozen=True)
+class MovingWindowParameters:
+    """How the DE window follows the tip. Lengths in grain diameters unless stated.
+
+    Attributes:
+        depth: total penetration depth [m] (beyond what the initial window allows).
+        trigger: the window moves when the tip is this close to its bottom.
+        step: how far the bottom moves per move.
+        max_height: largest window height [m] (the Box's extent along the axis, whose top
+            starts above the free surface); None: the window only grows. A top that would lie
+            less than a ghost band below the surface stays where it was.
+        settle_steps: DEM steps of settling after a move (ghosts and cone held).
+        servo_cycles: the second half of the settle is split into this many parts; before
+            each, the radii of the grains being generated are scaled so that their axial
+            stress approaches the target (module docstring, 6.); 0: a plain settle.
+        servo_rate: largest relative radius change per servo cycle (the grains grow by at
+            most ``(1 + servo_rate) ** servo_cycles``).
+        settle_hold: free grains closer than this to the cone are held during the settle
+            too (the cone is paused: left free they would relax away from the tip and the
+            tip force would drop).
+        relax_iterations: geometric push-apart iterations for new grains' overlaps.
+        overlap_tolerance: overlap left after the push-apart, fraction of the mean radius.
+        max_moves: a run stops moving the window after this many moves.
+        seed: of the new grains' lattice jitter and radii.
+        chimney: once the window travels, the grains within this many cone radii of the axis
+            stay grains up to the free surface (:meth:`MovingWindowPenetration.
+            _window_shape`); 0: the whole width becomes continuum behind the tip, under a
+            ghost band.
+    """
+
+    depth: float = 0.08
+    trigger: float = 18.0         # the scene's (benchmarks/results/moving_window.json compares 6-18)
+    step: float = 6.0
+    max_height: float | None = None
+    settle_steps: int = 8000
+    servo_cycles: int = 30
+    servo_rate: float = 0.005
+    settle_hold: float = 4.0
+    relax_iterations: int = 200
+    overlap_tolerance: float = 1e-3
+    max_moves: int = 50
+    seed: int = 7
+    chimney: float = 2.5
+
+    def __post_init__(self):
+        if not (np.isfinite(self.settle_hold) and self.settle_hold >= 0):
+            raise ValueError(f"settle_hold must be >= 0, got {self.settle_hold!r}")
+        if not (np.isfinite(self.chimney) and self.chimney >= 0):
+            raise ValueError(f"chimney must be >= 0 cone radii, got {self.chimney!r}")
+        for name in ("depth", "trigger", "step", "overlap_tolerance"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be > 0, got {v!r}")
+        if self.max_height is not None and not (np.isfinite(self.max_height) and self.max_height > 0):
+            raise ValueError(f"max_height must be None or > 0 m, got {self.max_height!r}")
+        if not (np.isfinite(self.servo_rate) and 0 <= self.servo_rate < 0.5):
+            raise ValueError(f"servo_rate must lie in [0, 0.5), got {self.servo_rate!r}")
+        for name in ("settle_steps", "servo_cycles", "relax_iterations", "max_moves"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
