@@ -20,6 +20,7 @@ import ufl
 from dolfinx import fem
 
 from granfe.problem import ContinuumProblem
+from granfe.solvers import REDUNDANT
 
 __all__ = ["AlphaParameters", "GeneralizedAlpha"]
 
@@ -108,9 +109,10 @@ class GeneralizedAlpha:
             rhs = rhs + ext
         zero = fem.Function(V)
         bcs = [fem.dirichletbc(zero, bc.dof_indices()[0]) for bc in problem.bcs]
+        lu = REDUNDANT if problem.solver_kind == "redundant" else {"pc_type": "lu",
+                                                                   "pc_factor_mat_solver_type": "mumps"}
         solver = LinearProblem(lhs, rhs, bcs=bcs, u=self.a, petsc_options_prefix=f"granfe_a0_{id(self)}_",
-                               petsc_options={"ksp_type": "preonly", "pc_type": "lu",
-                                              "pc_factor_mat_solver_type": "mumps"})
+                               petsc_options={"ksp_type": "preonly", **lu})
         solver.solve()
 
     def load_time(self) -> float:
@@ -252,7 +254,7 @@ class _AffineStep:
         if L != 0 and w in L.coefficients():
             return None
         ksp = stepper._snes.solver.getKSP()
-        if ksp.getType() != "preonly" or ksp.getPC().getType() not in ("lu", "cholesky"):
+        if ksp.getType() != "preonly" or ksp.getPC().getType() not in ("lu", "cholesky", "redundant"):
             return None
         return cls(stepper, L, ksp)
 

@@ -31,6 +31,7 @@ from granfe.models.base import ContinuumModel
 from granfe.models.micropolar import Micropolar
 from granfe.solvers import (
     ITERATIVE,
+    REDUNDANT,
     check_converged,
     check_ksp_converged,
     make_snes_problem,
@@ -57,8 +58,11 @@ class ContinuumProblem:
         facet_tags: boundary tags (e.g. from ``dolfinx.io.gmsh.model_to_mesh``).
         tag_names: physical-group names -> facet tag values.
         degree: Lagrange degree of each field (default: the model's).
-        solver: ``"direct"`` (MUMPS) or ``"iterative"`` (:data:`granfe.solvers.ITERATIVE`,
-            with the model's rigid modes as near-nullspace).
+        solver: ``"direct"`` (parallel MUMPS), ``"redundant"`` (every rank factorises the whole
+            system with sequential MUMPS, :data:`granfe.solvers.REDUNDANT`: bit-identical run
+            to run on the same rank count, for systems small enough to hold on one rank) or
+            ``"iterative"`` (:data:`granfe.solvers.ITERATIVE`, with the model's rigid modes as
+            near-nullspace).
         petsc_options: overrides of the solver's PETSc options.
         prefix: unique PETSc options prefix.
         checkpoint_dir: where the last converged state is written if a solve fails.
@@ -73,8 +77,8 @@ class ContinuumProblem:
                  checkpoint_dir: str | Path | None = None, quadrature_degree: int | None = None):
         if not isinstance(model, ContinuumModel):
             raise TypeError(f"model must be a ContinuumModel, got {type(model).__name__}")
-        if solver not in ("direct", "iterative"):
-            raise ValueError(f"solver must be 'direct' or 'iterative', got {solver!r}")
+        if solver not in ("direct", "redundant", "iterative"):
+            raise ValueError(f"solver must be 'direct', 'redundant' or 'iterative', got {solver!r}")
         self.domain = domain
         self.gdim = domain.geometry.dim
         model.bind(domain)
@@ -94,7 +98,7 @@ class ContinuumProblem:
         self.facet_tags = facet_tags
         self.tag_names = dict(tag_names or {})
         self.solver_kind = solver
-        self.petsc_options = dict(ITERATIVE if solver == "iterative" else {})
+        self.petsc_options = dict({"iterative": ITERATIVE, "redundant": REDUNDANT}.get(solver, {}))
         self.petsc_options.update(model.solver_options)
         self.petsc_options.update(petsc_options or {})
         self.prefix = prefix

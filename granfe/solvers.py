@@ -15,6 +15,7 @@ from dolfinx.fem.petsc import NonlinearProblem
 
 __all__ = [
     "DIRECT",
+    "REDUNDANT",
     "ITERATIVE",
     "SolveDidNotConverge",
     "make_snes_problem",
@@ -33,6 +34,17 @@ DIRECT = {
     "ksp_type": "preonly",
     "pc_type": "lu",
     "pc_factor_mat_solver_type": "mumps",
+}
+
+# direct, each rank factorising the whole system with sequential MUMPS (PCREDUNDANT): the same
+# bits run to run on the same rank count. Parallel MUMPS schedules its factorisation
+# dynamically, so its round-off differs from run to run; coupled to chaotic grains that
+# round-off grows tenfold per FE step into a different trajectory (issue 14, measured: two
+# 2-rank runs of scenes/cpt_2d.toml first differed at FE step 15; with this, not in 100)
+REDUNDANT = {
+    "pc_type": "redundant",
+    "redundant_pc_type": "lu",
+    "redundant_pc_factor_mat_solver_type": "mumps",
 }
 
 ITERATIVE = {

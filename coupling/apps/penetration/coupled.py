@@ -326,8 +326,9 @@ class CoupledPenetration:
                                  h_window=prm.element_size_window, h_far=prm.element_size_far)
         data.mesh.geometry.x[:, ax] += self.surface
         names = {k: tag for k, (gd, tag) in data.physical_groups.items() if gd == dim - 1}
+        # "redundant": the same bits run to run on the same rank count (granfe.solvers.REDUNDANT)
         self.problem = MicropolarProblem(data.mesh, self.material_fe, facet_tags=data.facet_tags,
-                                         tag_names=names, degree=(1, 1), prefix="cpt_")
+                                         tag_names=names, degree=(1, 1), prefix="cpt_", solver="redundant")
         self.problem.fix("bottom", "u")
         self.problem.fix("bottom", "phi")
         if dim == 2:
