@@ -6,7 +6,7 @@ force stress stays elastic. With ``s`` the deviator of ``sym sigma`` (3 x 3, so 
 plane strain the out-of-plane stress and plastic strain are kept) and ``p = tr sigma / 3``
 (tension positive), the yield function and plastic potential are::
 
-    f = tau + A p - (k0 + H e_q),     g = tau + B p,
+    f = tau + A p - k(e_q),     g = tau + B p,     k(e_q) = max(k0 + H e_q, k_r),
     tau = sqrt(J2),  J2 = 1/2 s:s + 1/2 m:m / l^2,   l^2 = gamma / (2 G),
 
 with ``G = mu + kappa / 2`` the classical shear modulus. That plastic length makes the
@@ -15,9 +15,11 @@ same factor ``1 - G dl / tau_trial``, so the whole update is closed form (UFL co
 and SNES gets the consistent tangent from ``ufl.derivative``. Where the radial return
 would cross the cone's apex the stress returns to the apex. Constant ``A, B, k0`` come
 from a Mohr-Coulomb friction angle, dilatancy angle and cohesion through a stated match
-(:class:`DruckerPragerMaterial`). Quadrature-point state: plastic strain (3 x 3), plastic
-curvature, equivalent plastic strain ``e_q`` (the accumulated multiplier), and the yield
-indicator of the last committed step.
+(:class:`DruckerPragerMaterial`); ``k_r`` from the residual cohesion, the floor of linear
+softening (``H < 0``): past ``e_q = (k0 - k_r) / -H`` the cone stays put (a negative
+cohesion would put the apex on the compression side). Quadrature-point state: plastic
+strain (3 x 3), plastic curvature, equivalent plastic strain ``e_q`` (the accumulated
+multiplier), and the yield indicator of the last committed step.
 
 Couple stress elasticity in the plastic model is gamma only (``alpha = beta = 0``): the
 radial return needs the curvature energy to be ``gamma/2 kap:kap``.
@@ -82,6 +84,8 @@ class DruckerPragerMaterial:
         hardening: H [Pa] per unit equivalent plastic strain (negative softens).
         match: ``"triaxial_compression"`` (3D) or ``"plane_strain"`` (2D), see
             :func:`drucker_prager_constants`.
+        residual_cohesion: c_r [Pa] in [0, cohesion], where softening stops (the cone of
+            friction phi and cohesion c_r); unused when hardening >= 0.
     """
 
     elastic: MicropolarMaterial
@@ -90,6 +94,7 @@ class DruckerPragerMaterial:
     dilatancy_deg: float = 0.0
     hardening: float = 0.0
     match: str = "plane_strain"
+    residual_cohesion: float = 0.0
 
     def __post_init__(self):
         if not isinstance(self.elastic, MicropolarMaterial):
@@ -104,6 +109,8 @@ class DruckerPragerMaterial:
             ("dilatancy_deg", 0 <= self.dilatancy_deg <= self.friction_deg,
              "in [0, friction_deg] degrees"),
             ("hardening", math.isfinite(self.hardening), "finite"),
+            ("residual_cohesion", 0 <= self.residual_cohesion <= self.cohesion,
+             "in [0, cohesion] Pa"),
         )
         for name, ok, rule in checks:
             value = getattr(self, name)
@@ -124,6 +131,12 @@ class DruckerPragerMaterial:
         """``(A, B, k0)``: friction and dilatancy coefficients and the cone's strength [Pa]."""
         return drucker_prager_constants(self.friction_deg, self.dilatancy_deg, self.cohesion,
                                         self.match)
+
+    @property
+    def residual_strength(self) -> float:
+        """``k_r``: the cone's strength [Pa] once softening has used up ``cohesion - c_r``."""
+        return drucker_prager_constants(self.friction_deg, self.dilatancy_deg,
+                                        self.residual_cohesion, self.match)[2]
 
     @property
     def shear_modulus(self) -> float:
@@ -163,7 +176,7 @@ class MicropolarDruckerPrager(Micropolar):
     def constant_values(self, material):
         values = super().constant_values(material.elastic)
         A, B, k0 = material.constants
-        values.update(A=A, B=B, k0=k0, H=material.hardening)
+        values.update(A=A, B=B, k0=k0, H=material.hardening, k_r=material.residual_strength)
         return values
 
     def make_constants(self, domain):
@@ -196,18 +209,25 @@ class MicropolarDruckerPrager(Micropolar):
         l2 = c.gamma / (2 * G)
         tau_tr = ufl.sqrt(0.5 * ufl.inner(s_tr, s_tr) + 0.5 * ufl.inner(m_tr, m_tr) / l2 + 1e-30)
         eq = state["equivalent_plastic_strain"]
-        f_tr = tau_tr + c.A * p_tr - (c.k0 + c.H * eq)
-        dl_cone = ufl.max_value(f_tr, 0) / (G + K * c.A * c.B + c.H)
+        k_lin = c.k0 + c.H * eq
+        k = ufl.max_value(k_lin, c.k_r)
+        f_tr = tau_tr + c.A * p_tr - k
+        # k(e_q + dl) = max(linear, floor): f(dl) is the smaller of the two branches' (both
+        # decreasing in dl), so its root is the smaller of their roots, for either sign of H
+        dl_lin = (tau_tr + c.A * p_tr - k_lin) / (G + K * c.A * c.B + c.H)
+        dl_floor = (tau_tr + c.A * p_tr - c.k_r) / (G + K * c.A * c.B)
+        dl_cone = ufl.conditional(f_tr > 0, ufl.min_value(dl_lin, dl_floor), 0.0)
         apex = ufl.And(f_tr > 0, tau_tr - G * dl_cone < 0)
         # apex: the deviatoric and couple stresses vanish, the mean stress meets the cone
         # (without dilatancy or hardening the apex is reached by no flow: the mean stress is
-        # put on the apex, p = k / A)
-        stiff = K * c.A * c.B + c.H
-        dl_apex = (c.A * p_tr - (c.k0 + c.H * eq)) / ufl.max_value(stiff, 1e-300)
+        # put on the apex, p = k / A); the hardening modulus of the branch the step starts on
+        H = ufl.conditional(k_lin > c.k_r, c.H, 0.0)
+        stiff = K * c.A * c.B + H
+        dl_apex = (c.A * p_tr - k) / ufl.max_value(stiff, 1e-300)
         scale = ufl.conditional(apex, 0.0, 1 - G * dl_cone / tau_tr)
         dl = ufl.conditional(apex, dl_apex, dl_cone)
         p_apex = ufl.conditional(stiff > 0, p_tr - K * c.B * dl_apex,
-                                 (c.k0 + c.H * eq) / ufl.max_value(c.A, 1e-300))
+                                 k / ufl.max_value(c.A, 1e-300))
         p = ufl.conditional(apex, p_apex, p_tr - K * c.B * dl_cone)
         s, m = scale * s_tr, scale * m_tr
         d_plastic_dev = (1 - scale) * s_tr / (2 * G)

@@ -102,6 +102,58 @@ def test_plane_strain_match_reaches_mohr_coulomb(psi):
     assert np.all(np.diff(axial) >= -1e-6 * mc)
 
 
+def test_softening_stops_at_the_residual_cohesion():
+    """Triaxial compression of a softening cone: the axial stress falls from at most the
+    peak Mohr-Coulomb value to the residual one (cohesion c_r) and stays there exactly once
+    the equivalent plastic strain has used up the softening range (k0 - k_r) / -H."""
+    p, top, _ = triaxial(100e3)
+    mat = DruckerPragerMaterial(ELASTIC, C, 30.0, 10.0, hardening=-4e5, residual_cohesion=C / 4,
+                                match="triaxial_compression")
+    p.model.update(mat)
+    used_up = (mat.constants[2] - mat.residual_strength) / 4e5
+    axial = []
+    for dz in np.linspace(0.0, -0.05, 26)[1:]:
+        top.value = dz
+        p.solve()
+        axial.append(-p.reaction(_at(2, 1.0), "u_z"))
+    peak, residual = mohr_coulomb_peak(100e3, 30.0), mohr_coulomb_peak(100e3, 30.0, c=C / 4)
+    assert max(axial) <= peak * (1 + 1e-10)
+    assert p.state.committed["equivalent_plastic_strain"].x.array.min() > used_up
+    assert axial[-1] == pytest.approx(residual, rel=1e-10)
+    assert axial[-2] == pytest.approx(residual, rel=1e-10)
+    softening = [a for a in axial if residual * (1 + 1e-6) < a < peak * (1 - 1e-6)]
+    assert len(softening) >= 3 and np.all(np.diff(axial[np.argmax(axial):]) <= 1e-8 * peak)
+
+
+@pytest.mark.mpi
+def test_shear_band_width_is_set_by_the_cosserat_length(tmp_out, monkeypatch):
+    """demos/2d/biaxial_shear_band.py, short (two coarse meshes, 12 and 16 elements across a
+    100 mm specimen, l = 3 mm): the band forms after the peak, which is within 1 % of the
+    homogeneous specimen's; with the couple terms its width changes by less than 10 %
+    between the meshes and is more than twice the width without them, which shrinks by more
+    than 15 % with the elements; the Cosserat band lies between the Roscoe and Coulomb
+    inclinations."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    demo = Path(__file__).resolve().parents[2] / "demos" / "2d" / "biaxial_shear_band.py"
+    monkeypatch.setenv("GRANFE_SHORT", "1")
+    monkeypatch.setattr(sys, "argv", [str(demo), "--meshes", "12", "16", "--out", str(tmp_out)])
+    results = runpy.run_path(str(demo), run_name="__main__")["results"]
+    s, cosserat, classical = results["summary"], results["cosserat"], results["classical"]
+    homogeneous = results["homogeneous"]["peak_stress"]
+    for run in cosserat:
+        assert 0 <= 1 - run["peak_stress"] / homogeneous < 0.01
+        profile = np.array(run["band"]["profile"][1])         # gained after the peak
+        assert profile.min() < 0.2 * profile.max()              # ... in a band
+    assert s["cosserat_width_spread"] < 0.10, s
+    assert s["classical_width_ratio_coarse_to_fine"] > 1.15, s
+    assert all(c["band"]["fwhm"] > 2 * k["band"]["fwhm"] for c, k in zip(cosserat, classical, strict=True))
+    angles = s["band_angles_deg"]
+    assert all(angles["roscoe"] < a < angles["coulomb"] for a in angles["cosserat"]), angles
+
+
 def test_plane_strain_constants_are_the_textbook_ones_when_associated():
     A, B, k0 = drucker_prager_constants(30.0, 30.0, C, "plane_strain")
     t = math.tan(math.radians(30.0))
@@ -161,6 +213,7 @@ def test_triaxial_on_any_rank_count():
     (dict(cohesion=1.0, friction_deg=20.0, dilatancy_deg=25.0), "dilatancy_deg"),
     (dict(cohesion=1.0, friction_deg=20.0, match="triaxial"), "match"),
     (dict(cohesion=0.0, friction_deg=0.0), "no strength"),
+    (dict(cohesion=1.0, friction_deg=20.0, residual_cohesion=2.0), "residual_cohesion"),
 ])
 def test_material_is_validated(kwargs, key):
     with pytest.raises(ValueError, match=key):

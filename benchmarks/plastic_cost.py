@@ -1,0 +1,194 @@
+"""Cost of a plastic 3D load step against an elastic one on the same calibration-chamber mesh.
+
+The 3D chamber of the penetration scenes (cylinder of radius R and depth H, refined toward
+the DE window on the axis, :func:`meshes.penetration.build_chamber`) carries gravity, then a
+rough rigid punch (radius 3 cm, half the window's) is pushed into its surface in ``--steps`` equal
+displacement steps, once with the micropolar elastic model and once with the micropolar
+Drucker-Prager model of the same elasticity (the cone matched to triaxial compression), on
+the same mesh, with the same solver (SNES, MUMPS LU unless ``--solver``). The punch is pushed
+far enough that the plastic zone under it holds a sizeable share of the quadrature points.
+
+Measured per mesh size and model, ``--repeat`` times (fresh problems, forms compiled by a
+warm-up run first): the wall time of each load step, its Newton iterations, and the time of
+the whole path. The plastic path is run three times: Newton from the last converged state;
+from the secant predictor of ``demos/2d/biaxial_shear_band.py`` (the last two converged
+states extrapolated), which saves an iteration; and that with Newton stopped at 1e-8 of the
+first residual instead of 1e-10 (one more). ``results.json``: per mesh the dofs, the step
+times (min and median over steps and repeats), the path times (min and median over
+repeats), the Newton iterations per step, the share of yielding points at the end, and the
+ratios plastic / elastic of the median path times (wall and CPU); the CPU model from ``/proc/cpuinfo``.
+
+Run: ``python benchmarks/plastic_cost.py [--h-window 0.02 0.01 0.006 --repeat 3]`` (serial).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
+
+import numpy as np
+
+from granfe.materials import MicropolarMaterial
+from granfe.models import model_class
+from granfe.models.drucker_prager import DruckerPragerMaterial
+from granfe.probe import probe
+from granfe.problem import ContinuumProblem
+from meshes.penetration import build_chamber
+
+SHORT = os.environ.get("GRANFE_SHORT") == "1"
+parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+parser.add_argument("--h-window", type=float, nargs="+", default=[0.02] if SHORT else [0.02, 0.01, 0.006],
+                    help="element sizes in the window [m] (one mesh each)")
+parser.add_argument("--h-far", type=float, default=0.05, help="element size far from it [m]")
+parser.add_argument("--degree", type=int, nargs=2, default=(1, 1),
+                    help="degrees of u and phi (the coupled scenes use 1 1)")
+parser.add_argument("--steps", type=int, default=4 if SHORT else 6, help="load steps of the punch")
+parser.add_argument("--settlement", type=float, default=2e-4, help="final punch settlement [m]")
+parser.add_argument("--repeat", type=int, default=1 if SHORT else 3)
+parser.add_argument("--solver", choices=("direct", "iterative"), default="direct")
+parser.add_argument("--out", type=Path, default=Path("output/plastic_cost"))
+args = parser.parse_args()
+comm = MPI.COMM_WORLD
+
+# ---- the chamber and the soil (SI) --------------------------------------------------------
+R, H = 0.15, 0.2                  # chamber radius and depth [m], as scenes/cpt_3d.toml
+window_radius, window_depth = 0.06, 0.08
+punch_radius = 0.03               # the rough punch on the surface [m]
+rho, g = 1600.0, 9.81             # bulk density [kg/m^3], gravity [m/s^2]
+E, nu = 5e6, 0.3
+cohesion, friction, dilatancy = 500.0, 30.0, 5.0      # [Pa], [deg], [deg]
+G = E / (2 * (1 + nu))
+kappa, length = 0.5 * G, 4e-3     # coupling modulus [Pa]; Cosserat length ~ a grain diameter [m]
+elastic = MicropolarMaterial(lam=E * nu / ((1 + nu) * (1 - 2 * nu)), mu=G - kappa / 2, kappa=kappa,
+                             gamma=2 * G * length**2, rho=rho, j=length**2)
+plastic = DruckerPragerMaterial(elastic, cohesion, friction, dilatancy, match="triaxial_compression")
+
+
+def cpu_model() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return "unknown"
+
+
+def log(msg):
+    if comm.rank == 0:
+        print(msg, flush=True)
+
+
+def chamber(h_window: float):
+    data = build_chamber(comm, 3, radius=R, depth=H, window_radius=window_radius,
+                         window_depth=window_depth, h_window=h_window, h_far=args.h_far)
+    names = {k: tag for k, (d, tag) in data.physical_groups.items() if d == 2}
+    return data, names
+
+
+def under_punch(x):
+    return np.isclose(x[2], 0.0) & (np.hypot(x[0], x[1]) <= punch_radius + 1e-9)
+
+
+def push(data, names, model_name: str, material, predictor: bool, options: dict, tag: str) -> dict:
+    """Gravity, then the punch in ``args.steps`` steps; the step times and iterations."""
+    model = model_class(model_name)(material)
+    problem = ContinuumProblem(data.mesh, model, facet_tags=data.facet_tags, tag_names=names,
+                               degree=tuple(args.degree), solver=args.solver, prefix=f"cost_{tag}_",
+                               petsc_options=options)
+    problem.fix("bottom", "u")
+    problem.fix("bottom", "phi")
+    problem.fix("side", "u_x")
+    problem.fix("side", "u_y")
+    problem.body_force((0.0, 0.0, -rho * g))
+    problem.solve()                                   # geostatic: elastic for both models
+    top = probe(problem.w.sub(0).collapse(), np.zeros((1, 3)))[0]
+    for c, v in zip(("u_x", "u_y"), top[:2], strict=True):
+        problem.fix(under_punch, c, float(v))       # rough, from where gravity left it
+    settle = problem.fix(under_punch, "u_z", float(top[2]))
+    problem.solve()                                   # builds the solver (not timed)
+    history = [problem.w.x.array.copy()]
+    times, cpu, its = [], [], []
+    for k in range(1, args.steps + 1):
+        settle.value = top[2] - k * args.settlement / args.steps
+        if predictor and len(history) == 2:         # equal steps: w_k = 2 w_(k-1) - w_(k-2)
+            problem.w.x.array[:] = 2 * history[1] - history[0]
+        comm.barrier()
+        t0, c0 = time.perf_counter(), time.process_time()
+        its.append(problem.solve())
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        history = (history + [problem.w.x.array.copy()])[-2:]
+    yielding = problem.state.owned("yielding") if problem.state else np.zeros(0)
+    share = comm.allreduce(float(yielding.sum()), MPI.SUM) / max(comm.allreduce(yielding.size, MPI.SUM), 1)
+    return {"step_s": times, "step_cpu_s": cpu, "newton_iterations": its, "path_s": float(sum(times)),
+            "path_cpu_s": float(sum(cpu)),
+            "yielding_share": share,
+            "dofs": problem.V.dofmap.index_map.size_global * problem.V.dofmap.index_map_bs}
+
+
+def summarise(runs: list[dict]) -> dict:
+    out = {}
+    for clock in ("s", "cpu_s"):        # wall and CPU (process) time
+        steps = np.concatenate([r[f"step_{clock}"] for r in runs])
+        paths = np.array([r[f"path_{clock}"] for r in runs])
+        out.update({f"step_{clock}_min": float(steps.min()), f"step_{clock}_median": float(np.median(steps)),
+                    f"path_{clock}_min": float(paths.min()), f"path_{clock}_median": float(np.median(paths))})
+    return {**out, "newton_iterations": runs[-1]["newton_iterations"],
+            "newton_iterations_mean": float(np.mean(runs[-1]["newton_iterations"])),
+            "yielding_share": runs[-1]["yielding_share"], "step_s_last_repeat": runs[-1]["step_s"]}
+
+
+# (model, material, secant predictor, PETSc options); the last stops Newton at a residual of
+# 1e-8 of the step's first instead of 1e-10 (quadratic convergence: one iteration less)
+VARIANTS = {"elastic": ("micropolar", elastic, False, {}),
+            "plastic": ("micropolar_drucker_prager", plastic, False, {}),
+            "plastic_predictor": ("micropolar_drucker_prager", plastic, True, {}),
+            "plastic_predictor_rtol1e-8": ("micropolar_drucker_prager", plastic, True, {"snes_rtol": 1e-8})}
+PLASTIC = [k for k in VARIANTS if k != "elastic"]
+
+# ---- measure ---------------------------------------------------------------------------
+results = {"what": "wall time of a 3D load step of the calibration chamber (gravity, then a rough "
+                   "punch), micropolar Drucker-Prager against micropolar elastic on the same mesh",
+           "inputs": {"chamber": [R, H], "window": [window_radius, window_depth],
+                      "punch_radius": punch_radius, "h_far": args.h_far, "degree": list(args.degree),
+                      "steps": args.steps, "settlement": args.settlement, "repeat": args.repeat,
+                      "solver": args.solver, "E": E, "nu": nu, "kappa": kappa, "length": length,
+                      "cohesion": cohesion, "friction_deg": friction, "dilatancy_deg": dilatancy,
+                      "match": "triaxial_compression", "density": rho, "ranks": comm.size,
+                      "short": SHORT},
+           "cpu": cpu_model(), "meshes": []}
+data, names = chamber(max(args.h_window))
+for name, (model, material, predictor, options) in VARIANTS.items():     # compile every form once
+    push(data, names, model, material, predictor, options, f"warm_{name}")
+for h in args.h_window:
+    data, names = chamber(h)
+    entry = {"h_window": h, "cells": comm.allreduce(data.mesh.topology.index_map(3).size_local, MPI.SUM)}
+    for rep in range(args.repeat):
+        for name, (model, material, predictor, options) in VARIANTS.items():   # interleaved: a
+            entry.setdefault(name, []).append(                                   # busy spell hits
+                push(data, names, model, material, predictor, options, f"{name}{rep}_{h:g}"))  # all
+    for name in VARIANTS:
+        entry["dofs"] = entry[name][-1]["dofs"]
+        entry[name] = summarise(entry[name])
+    for name in PLASTIC:
+        entry[f"{name}_over_elastic"] = entry[name]["path_s_median"] / entry["elastic"]["path_s_median"]
+        entry[f"{name}_over_elastic_cpu"] = (entry[name]["path_cpu_s_median"]
+                                             / entry["elastic"]["path_cpu_s_median"])
+    results["meshes"].append(entry)
+    log(f"h {h:g}: {entry['dofs']} dofs, {entry['cells']} cells; elastic path "
+        f"{entry['elastic']['path_cpu_s_median']:.2f} s CPU; yielding "
+        f"{100 * entry['plastic']['yielding_share']:.0f} % of the points at the end")
+    for name in PLASTIC:
+        log(f"  {name}: x {entry[f'{name}_over_elastic_cpu']:.2f} CPU, x "
+            f"{entry[f'{name}_over_elastic']:.2f} wall, Newton its {entry[name]['newton_iterations']}")
+
+if comm.rank == 0:
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+for entry in results["meshes"]:
+    assert entry["plastic"]["yielding_share"] > 0.01, "the punch did not yield the soil"
+    assert all(i == 1 for i in entry["elastic"]["newton_iterations"])
