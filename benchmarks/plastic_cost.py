@@ -18,7 +18,8 @@ times (min and median over steps and repeats), the path times (min and median ov
 repeats), the Newton iterations per step, the share of yielding points at the end, and the
 ratios plastic / elastic of the median path times (wall and CPU); the CPU model from ``/proc/cpuinfo``.
 
-Run: ``python benchmarks/plastic_cost.py [--h-window 0.02 0.01 0.006 --repeat 3]`` (serial).
+Run: ``python benchmarks/plastic_cost.py`` (serial; 35 min on the 2-core VM, ``--h-window 0.02 0.01``
+for 3 min).
 """
 
 from __future__ import annotations
