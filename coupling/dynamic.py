@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from coupling.interface import Aitken, CouplingInterface
+from coupling.interface import Aitken, ConstantRelaxation, CouplingInterface
 from coupling.regions import CouplingRegions
 from coupling.staggered import InterfaceDidNotConverge
 from granfe.dynamics import GeneralizedAlpha
@@ -86,7 +86,7 @@ class DynamicCoupling:
         g0 = pd.pack_ghosts(*iface.ghost_motion())
         st.predict()
         current = self._prescribed_from_w()
-        aitken = Aitken(iface, 1.0, opts.aitken)
+        aitken = Aitken(iface, 1.0) if opts.aitken else ConstantRelaxation(iface, 1.0)
         for it in range(1, opts.max_iterations + 1):  # noqa: B007 (the count is returned)
             t0 = time.perf_counter()
             pd.restore(saved)

@@ -303,9 +303,8 @@ class Aitken:
 
     columns = 0
 
-    def __init__(self, interface: CouplingInterface, omega: float = 1.0, enabled: bool = True,
-                 bounds=(0.05, 2.0)):
-        self.interface, self.omega0, self.enabled, self.bounds = interface, omega, enabled, bounds
+    def __init__(self, interface: CouplingInterface, omega: float = 1.0, bounds=(0.05, 2.0)):
+        self.interface, self.omega0, self.bounds = interface, omega, bounds
         self.reset()
 
     def reset(self):
@@ -318,7 +317,7 @@ class Aitken:
     def update(self, current: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, float]:
         """New iterate and the relative residual ``|T(x) - x| / |T(x)|``."""
         r = target - current
-        if self.enabled and self.r_prev is not None:
+        if self.r_prev is not None:
             dr = r - self.r_prev
             denom = self.interface.dot(dr, dr)
             if denom > 0:

@@ -8,8 +8,10 @@ its history restored on a restart); the runner owns the loop and everything arou
   (:class:`granfe.io.ContinuumWriter`; a restart starts ``<name>_from<step>``, VTX cannot
   append) and the grains as one VTU/PVD series continued across restarts
   (:class:`dem.io.ParticleWriter`);
-- ``history.json`` and ``<history_name>.csv``: at every frame and checkpoint, and at the end,
-  always before the checkpoint of the same step (a kill between the two repeats the step);
+- ``history.json`` and ``<history_name>.csv``: at every frame and checkpoint, and at the end
+  (after the application's ``finish``, which may add columns derived from the whole
+  history), always before the checkpoint of the same step (a kill between the two repeats
+  the step);
 - checkpoints every ``checkpoint_every`` steps (:mod:`coupling.checkpoints`), free disk
   space checked first (:func:`coupling.checkpoints.ensure_free_space`);
 - a signal (:class:`coupling.interrupts.StopRequests`): checkpoint, then
@@ -78,6 +80,7 @@ class Steps(Protocol):
     def save_checkpoint(self, directory: Path, meta: dict | None) -> None: ...   # collective
     def save_last_good(self, where: Path) -> None: ...    # collective
     def stopped(self, err: BaseException, where: Path) -> str: ...   # why, and where
+    def finish(self) -> None: ...                         # columns of the whole history
     def figures(self, out: Path) -> None: ...             # collective
 
 
@@ -137,7 +140,7 @@ def _loop(steps, out, comm, outputs, progress, stop, meta, header):
             frame = (k + 1) % outputs.frame_every == 0 or last
             if saved or frame:
                 ensure_free_space(out, comm, "checkpoint" if saved else "frame")
-                if comm.rank == 0:
+                if comm.rank == 0 and (saved or not last):   # the last step's: after finish()
                     write_history(out, steps.history, steps.history_name, header)
             if frame:
                 collect(comm)
@@ -156,6 +159,7 @@ def _loop(steps, out, comm, outputs, progress, stop, meta, header):
         for w in writers:
             if w is not None:
                 w.close()
+    steps.finish()
     if comm.rank == 0:
         write_history(out, steps.history, steps.history_name, header)
     if outputs.png:

@@ -97,27 +97,24 @@ def parameter(owner, name: str, default=dataclasses.MISSING):
                              metadata={"parameter": (owner, name)})
 
 
-def parameter_keys(tables, owner) -> dict[str, str]:
-    """``{field of owner: "section.key"}`` over the scene's tables (a dataclass or its type)."""
-    keys = {}
+def _parameter_fields(tables, owner):
+    """``(section, key, field of owner)`` of every scene key declared with :func:`parameter`
+    for ``owner`` (``tables``: the scene dataclass or its type)."""
     for section in fields(tables):
         for f in fields(section.default_factory()):
             target = f.metadata.get("parameter")
             if target is not None and target[0] is owner:
-                keys[target[1]] = f"{section.name}.{f.name}"
-    return keys
+                yield section.name, f.name, target[1]
+
+
+def parameter_keys(tables, owner) -> dict[str, str]:
+    """``{field of owner: "section.key"}`` over the scene's tables (a dataclass or its type)."""
+    return {name: f"{section}.{key}" for section, key, name in _parameter_fields(tables, owner)}
 
 
 def parameter_values(scene, owner) -> dict:
     """``{field of owner: value}`` read from the scene's tables."""
-    values = {}
-    for section in fields(scene):
-        table = getattr(scene, section.name)
-        for f in fields(table):
-            target = f.metadata.get("parameter")
-            if target is not None and target[0] is owner:
-                values[target[1]] = getattr(table, f.name)
-    return values
+    return {name: getattr(getattr(scene, section), key) for section, key, name in _parameter_fields(scene, owner)}
 
 
 def _toml_value(v):

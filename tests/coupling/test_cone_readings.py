@@ -23,7 +23,7 @@ def test_sleeve_is_the_shaft_just_above_the_cone(dim):
         pen, _, tip = cone_clump(R, prm.apex_deg, 10 * R, prm.radius)
     else:
         pen, _, tip = penetrator_clump(prm, 10 * R)
-    pen = pen + np.array([0.01, -0.2, 0.0])[: 3] * (dim == 2)     # any rigid placement
+    pen = pen + np.array([0.01, -0.2, 0.05])                     # any rigid placement
     parts = cone_parts(pen, tip, prm)
     ax = dim - 1
     z = pen[:, ax] - pen[:, ax].min()

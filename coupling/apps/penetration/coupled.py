@@ -354,6 +354,7 @@ class CoupledPenetration:
         self.accelerator = IQNILS(self.interface, prm.relaxation, IQNOptions(reuse=1))
         if saved is not None:
             self._restore_run(saved)
+        self._g_now = None   # ghost motion of the current FE state, kept by each step for the next
 
     # ---- set-up -------------------------------------------------------------------------
     def _continuum_material(self):
@@ -505,17 +506,19 @@ class CoupledPenetration:
             new, res = acc.update(x, target)
             if not np.isfinite(res):
                 raise CouplingUnstable(f"interface residual is {res} at FE step {k + 1}")
-            if res < prm.interface_tol or iface.norm(target - x) < floor:
+            converged = bool(res < prm.interface_tol or iface.norm(target - x) < floor)
+            if converged:
                 break
             x = new
             D[:n_u] = D_n + x
             iface.set_prescribed(D)
             st.solve()
             t_fe += clock() - t2
-        converged = bool(res < prm.interface_tol or iface.norm(target - x) < floor)
         st.finish()
+        # the ghosts of the accepted FE state: g_next unless a solve followed it (no convergence)
+        self._g_now = g_next if converged else self._ghost_motion()
         self.depth, self.g_prev = depth, g_next
-        mismatch = self._check_ghosts(self._ghost_motion(), g_next, k)
+        mismatch = self._check_ghosts(self._g_now, g_next, k)
         f = sim.p.force[self.pen_index] - self.clump_internal
         self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
                                         interface_mismatch=mismatch, interface_iterations=it,
@@ -535,7 +538,7 @@ class CoupledPenetration:
         t0 = clock()
         # ghosts head for the last converged FE state (a one-step lag, no extrapolation:
         # extrapolating the FE acceleration amplifies the grains' noise)
-        g_prev, g_next = self.g_prev, self._ghost_motion()
+        g_prev, g_next = self.g_prev, (self._ghost_motion() if self._g_now is None else self._g_now)
         t_ghosts = clock() - t0
         st.predict()
         t_dem = clock()
@@ -556,7 +559,7 @@ class CoupledPenetration:
         st.solve()
         st.finish()
         t3 = clock()
-        g_new = self._ghost_motion()
+        g_new = self._g_now = self._ghost_motion()   # the next step's target
         t4 = clock()
         mismatch = self._check_ghosts(g_new, g_next, k)
         # the ghosts continue from where the grains saw them (no jump between FE steps)

@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from coupling.apps.penetration.parameters import VERTICAL
+
 if TYPE_CHECKING:
     from coupling.apps.penetration.coupled import PenetrationParameters
 
@@ -17,7 +19,6 @@ __all__ = ["cone_clump", "penetrator_clump", "tip_height", "ConeParts", "cone_pa
 # ISO 22476-1: a 10 cm^2 cone with a 150 cm^2 friction sleeve just above it, so the sleeve's
 # length is 150 / (4 x 10) = 3.75 cone diameters whatever the cone's size
 SLEEVE_OVER_DIAMETER = 3.75
-VERTICAL = {2: 1, 3: 2}
 
 
 def tip_height(prm: PenetrationParameters) -> float:

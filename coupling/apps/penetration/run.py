@@ -18,7 +18,7 @@ from coupling.apps.penetration.coupled import VERTICAL, CoupledPenetration, Pene
 from coupling.apps.penetration.penetrators import filtered
 from coupling.collective_gc import collective_gc
 from coupling.preflight import memory_mb
-from coupling.runner import Outputs, run_steps, write_history
+from coupling.runner import Outputs, run_steps
 
 __all__ = ["run_penetration", "PenetrationSteps"]
 
@@ -66,14 +66,9 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
     outputs = Outputs(frame_every=max(1, cpt.n_steps // frames), fields=fields, particles=particles,
                       png=png, checkpoint_every=checkpoint_every)
     t0 = time.perf_counter()
-    history = run_steps(PenetrationSteps(cpt, moving is None), out, comm, outputs, progress=progress,
-                        stop=stop, meta=meta)
+    steps = PenetrationSteps(cpt, moving is None)
+    history = run_steps(steps, out, comm, outputs, progress=progress, stop=stop, meta=meta)
     t_run = time.perf_counter() - t0
-    # the smoothed profiles beside the raw ones, over one cone diameter
-    window = 2 * prm.cone_radius
-    for key in ("q_c", "f_s"):
-        for h, v in zip(history, filtered(history, key, window), strict=True):
-            h[f"{key}_filtered"] = float(v)
     pushed = history[start:]
     results = {"parameters": prm.__dict__, "grains": cpt.n_grains,
                "penetrator_spheres": len(cpt.pen_index),
@@ -86,11 +81,8 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
                "wall_time_per_fe_step_s": float(np.median([h["wall_time"] for h in pushed])) if pushed else None,
                "ranks": comm.size, "history": history, "window_moves": getattr(cpt, "moves", []),
                "q_c_mean_last_half": float(np.mean([h["q_c"] for h in history[len(history) // 2:]])),
-               "filter_window_m": window}
+               "filter_window_m": steps.filter_window}
     if comm.rank == 0:
-        write_history(out, history, PenetrationSteps.history_name)
-        if png:
-            _curves(history, out / "tip_resistance.png")
         (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
         log(f"{len(pushed)} FE steps, {cpt.sim.nsteps} DEM steps in {t_run:.1f} s; outputs in {out}")
     return results
@@ -135,6 +127,7 @@ class PenetrationSteps:
 
         self.cpt, self.checkpoints = cpt, checkpoints
         self.problem, self.history, self.n_steps = cpt.problem, cpt.history, cpt.n_steps
+        self.filter_window = 2 * cpt.prm.cone_radius   # one cone diameter
         self.failures = (BlowUpError, DemError, CouplingUnstable, FloatingPointError, ValueError)
 
     def advance(self) -> dict:
@@ -167,8 +160,16 @@ class PenetrationSteps:
         return (f"penetration stopped at depth {depth:.4g} m: {err}; the last state and the "
                 f"history so far are in {where}")
 
+    def finish(self) -> None:
+        """The smoothed profiles beside the raw ones (``q_c_filtered``, ``f_s_filtered``)."""
+        for key in ("q_c", "f_s"):
+            for h, v in zip(self.history, filtered(self.history, key, self.filter_window), strict=True):
+                h[f"{key}_filtered"] = float(v)
+
     def figures(self, out: Path) -> None:
         _picture(self.cpt, out / "cpt.png")
+        if self.cpt.comm.rank == 0:
+            _curves(self.history, out / "tip_resistance.png")
 
 
 def _curves(history, path):

@@ -175,6 +175,9 @@ class PunchSteps:
     def stopped(self, err: BaseException, where: Path) -> str:
         return f"{err}; the last good state is in {where}"
 
+    def finish(self) -> None:
+        """No columns derived from the whole history."""
+
     def figures(self, out: Path) -> None:
         _figures(out, self.problem, self.run, self.history, self.comm)
 
