@@ -54,11 +54,15 @@ class ServoWall:
 
 
 def unbalanced_force_ratio(sim) -> float:
-    """``|sum_i |F_i + m_i g|| / |sum_i |F_i||`` over FREE particles (0 in equilibrium)."""
+    """``sum_i |F_i + m_i g| / sum_i |C_i|`` over FREE particles (0 in equilibrium), F the
+    force on a particle (contacts and `Simulation.set_external_force`), C its contact part."""
     p = sim.p
     f = p.kind == FREE
     net = p.force[f] + p.mass[f, None] * sim.gravity
-    contact = np.linalg.norm(p.force[f], axis=1).sum()
+    c = p.force.copy()
+    rows, fext = sim.external_force()
+    c[rows] -= fext
+    contact = np.linalg.norm(c[f], axis=1).sum()
     if contact == 0.0:
         return math.inf
     return float(np.linalg.norm(net, axis=1).sum() / contact)

@@ -411,7 +411,10 @@ class Simulation:
         self._ghosts = self._ghost_index()
         n = particles.n
         self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0,
-                         cell=0.0)
+                         cell=0.0, external=0.0)
+        # constant external forces on FREE rows (`set_external_force`): (rows, forces, rows'
+        # positions at the last force pass) or None
+        self._ext = None
         # contact sums b (x) f (`_stress_sums`): of the last force pass, of the one before,
         # and of the last forces with the branch vectors of the pass before
         self._bf = self._bf_prev = self._bf_mixed = np.zeros((3, 3, 3))
@@ -490,7 +493,51 @@ class Simulation:
                              w.point, w.normal, w.velocity, w.material, self.table, h[3],
                              h[4], h[5], self.dt, self._out, *acc, self._wf, hit=self._hit)
         w.force[:] = self._wf[:, :3]
+        if self._ext is not None:
+            rows, f, _ = self._ext
+            p.force[rows] += f
+            self._hit[rows] = 1   # the kick reads their force rows
         return e1 + e2, s1 + s2
+
+    def external_force(self):
+        """(rows (k,), forces (k, 3) [N]) of `set_external_force` (empty if none)."""
+        if self._ext is None:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        return self._ext[0], self._ext[1]
+
+    def set_external_force(self, rows, force) -> None:
+        """Apply the constant force ``force`` [N] ((k, 3), or (3,) for every row) to the FREE
+        particles ``rows`` (k,) from the next force pass on, beside their contact forces and
+        gravity: a surcharge or a membrane pressure on a specimen's boundary grains, a fluid
+        drag; it is added to the forces now in the arrays, which the next half-kick uses.
+        Its work is booked as ``work_external`` in `energy`. ``rows=None`` removes it.
+        Not with a periodic cell (positions wrap)."""
+        p = self.p
+        if self._ext is not None:   # out of the forces now in the arrays
+            p.force[self._ext[0]] -= self._ext[1]
+        if rows is None:
+            self._ext = None
+            return
+        rows = np.asarray(rows, np.int64).ravel()
+        f = np.broadcast_to(np.asarray(force, float), (len(rows), 3)).copy()
+        if self.cell is not None:
+            raise ValueError("set_external_force: not in a periodic cell")
+        if len(rows) and (rows.min() < 0 or rows.max() >= p.n):
+            raise ValueError(f"set_external_force: rows must lie in [0, {p.n}), got "
+                             f"{rows.min()}..{rows.max()}")
+        if len(np.unique(rows)) != len(rows):
+            raise ValueError("set_external_force: rows repeat")
+        if (p.kind[rows] != FREE).any():
+            raise ValueError("set_external_force: rows must be FREE particles (the others' "
+                             "motion is prescribed)")
+        if not np.isfinite(f).all():
+            raise ValueError("set_external_force: force is not finite")
+        if p.dim == 2 and (f[:, 2] != 0).any():
+            raise ValueError("set_external_force: force[:, 2] must be 0 for 2D disks")
+        self._ext = (rows, f, p.x[rows].copy())
+        # into the forces now in the arrays, which the next half-kick uses
+        p.force[rows] += f
+        self._hit[rows] = 1
 
     def _stress_sums(self, m):
         """Sums over the touching pairs of b (x) f (3, 3, 3) [N m] for f the contact force
@@ -651,6 +698,13 @@ class Simulation:
             lt = self.cell.velocity_gradient.T
             wcell = 0.5 * self.dt * ((self._bf_prev + self._bf_mixed) * lt).sum(axis=(1, 2))
         contact = wc + wgh + www - wcell[0]
+        if self._ext is not None:   # wc holds the external forces' work too: book it apart
+            rows, f, x0 = self._ext
+            x1 = p.x[rows]
+            wext = float((f * (x1 - x0)).sum())
+            x0[:] = x1
+            contact -= wext
+            led["external"] += wext
         dissipated = -(contact - (we + wge + wwe - wcell[1])) - (es - self._spring)
         damping = -(wd + wgd + wwd - wcell[2])
         led["dissipated"] += dissipated
@@ -730,7 +784,8 @@ class Simulation:
         of a missing entry, an unknown one, or one whose shape does not fit."""
         d = dict(d)
         want = set(self.state_dict())  # the keys of this configuration (cheap: copies)
-        optional = {"cell.xh_x", "cell.xh_h"}
+        # ledger.external: absent from states written before external forces existed
+        optional = {"cell.xh_x", "cell.xh_h", "ledger.external"}
         for k in sorted(want - optional):
             if k not in d:
                 raise ValueError(f"state has no {k!r} (a state_dict of another configuration?)")
@@ -762,7 +817,7 @@ class Simulation:
         self._at = (np.array(xg, float).reshape(-1, 3), np.array(wp, float).reshape(-1, 3))
         self._zeroed = bool(d["integrator.zeroed"])
         for k in self._led:
-            self._led[k] = float(d[f"ledger.{k}"])
+            self._led[k] = float(d.get(f"ledger.{k}", 0.0))
         self._elastic, self._spring = float(d["ledger.elastic"]), float(d["ledger.spring"])
         self._e0, self._shadow0 = float(d["ledger.initial"]), float(d["ledger.initial_shadow"])
         if self.cell is not None:
@@ -776,6 +831,8 @@ class Simulation:
         self._ghosts = self._ghost_index()
         self._lay = (None, None)  # the pair layout is rebuilt from the history restored
         self._good = None
+        if self._ext is not None:
+            self._ext[2][:] = p.x[self._ext[0]]
         self._check()
 
     def ledger(self) -> dict:
@@ -843,7 +900,8 @@ class Simulation:
         the tangential dashpots while sticking), dissipated_friction (the rest of the
         contact work that is not stored elastically: Coulomb sliding, rolling resistance,
         spring energy lost on sliding, opening and stiffness changes), work_gravity,
-        work_walls, work_ghosts (work done on the particles), work_cell (in a deforming
+        work_walls, work_ghosts, work_external (`set_external_force`) (work done on the
+        particles), work_cell (in a deforming
         periodic cell: the work of the affine motion on the contacts, sum f . L b dt over
         the pairs = V sigma : L dt a step, sigma the Love-Weber stress; 0 without a cell), shadow
         (sum dt^2/(8m)|F|^2 + dt^2/(8I)|T|^2, the velocity Verlet term), initial (kinetic +
@@ -857,12 +915,13 @@ class Simulation:
         led = self._led
         sh = self._shadow()
         stored = kt + kr - sh + self._elastic + led["dissipated"]
-        work = led["gravity"] + led["walls"] + led["ghosts"] + led["cell"]
+        work = led["gravity"] + led["walls"] + led["ghosts"] + led["cell"] + led["external"]
         return dict(kinetic_translational=kt, kinetic_rotational=kr, elastic=self._elastic,
                     dissipated_damping=led["dissipated"] - led["friction"],
                     dissipated_friction=led["friction"],
                     work_gravity=led["gravity"], work_walls=led["walls"],
-                    work_ghosts=led["ghosts"], work_cell=led["cell"], shadow=sh,
+                    work_ghosts=led["ghosts"], work_cell=led["cell"],
+                    work_external=led["external"], shadow=sh,
                     initial=self._e0,
                     balance=stored - work - (self._e0 - self._shadow0))
 
@@ -895,7 +954,7 @@ class Simulation:
         ke, ok = _kinetic_finite(p.x, p.v, p.omega, p.mass, p.inertia, p.kind)
         if ok:
             budget = (self._e0 + abs(led["gravity"]) + abs(led["walls"]) + abs(led["ghosts"])
-                      + abs(led["cell"]))
+                      + abs(led["cell"]) + abs(led["external"]))
             ok = ke <= self.blowup_factor * budget + 1e-300
         if not ok:
             why = "NaN in x, v or omega" if not np.isfinite(p.v).all() else "kinetic energy jump"
