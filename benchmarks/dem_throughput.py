@@ -13,9 +13,17 @@ This benchmark shows how to:
   slowest rank), with the number of decompositions, migrations and halo copies, and the
   difference of its KE(2000) from the serial run's (0 when the runs agree bit for bit),
 - compare with LIGGGHTS: run here if the ``liggghts`` binary exists, else the peers'
-  measured numbers from RESULTS.md (said so in results.json).
+  measured numbers from RESULTS.md (said so in results.json),
+- dense window-size scenes (grains in lasting contact, what a coupled DE window holds):
+  touching simple-cubic sphere lattices (the settle scene's lattice at spacing 2R, no
+  jitter: Hertz-Mindlin, walls, gravity) and touching hexagonal disk lattices (linear law,
+  the `make demo` grains: R = 1.5 mm, kn = 2e5 N/m, kt = kn/2), N = 1k, 2k, 5k, settling
+  under gravity from rest; one numba thread against LIGGGHTS on one process on the same
+  3D lattices in the same invocation (interleaved repeats),
+- record the machine: CPU model and flags, the LLVM target numba compiles for.
 
-Run: ``python benchmarks/dem_throughput.py [--out DIR]``; ``GRANFE_SHORT=1``: N = 10,000 only.
+Run: ``python benchmarks/dem_throughput.py [--out DIR] [--scenes settle,dense]``;
+``GRANFE_SHORT=1``: N = 10,000 only for the settle scene, one repeat of the dense ones.
 """
 
 from __future__ import annotations
@@ -41,6 +49,13 @@ NS = [10_000] if SHORT else [10_000, 50_000]
 THREADS = [1, 2]
 REPEATS = 3
 NSTEPS = 2000
+DENSE_NS = [1000, 2000, 5000]
+DENSE_STEPS = 2000
+DENSE_REPEATS = 1 if SHORT else 3
+IDLE_N = 512
+DISK = dict(R=1.5e-3, RHO=2650.0, KN=2.0e5, KT=1.0e5, MU=0.5, COR=0.5, E=1e8, NU=0.25,
+            G=9.81)
+"""2D disks of scenes/cpt_2d.toml (linear law; E, nu only enter the time step bound)."""
 # peers' RESULTS.md §1 (LIGGGHTS 3.8.0, this machine type, run 1): median (best) M p-steps/s
 LIGGGHTS_RESULTS = {
     10_000: dict(mps={1: (13.8, 14.0), 2: (24.6, 24.9)}, ke_2000=6.9388e-4,
@@ -179,13 +194,213 @@ def run_liggghts(P, n, procs, workdir):
     return float(re.search(r"Loop time of ([0-9.eE+-]+)", out.stdout).group(1))
 
 
+# ---------------------------------------------------------------- dense scenes
+def dense_lattice(P, n):
+    """The settle scene's simple-cubic lattice at spacing 2R and no jitter: every sphere
+    touches its neighbours (positions, box Lx, Ly)."""
+    pos, lx, ly, _ = P.lattice(n, spacing=2.0 * P.R, jitter=0.0)
+    return pos, lx, ly
+
+
+def dense_sim(P, kind, n):
+    """A dense scene as a `dem.Simulation`: kind "3d" (touching sphere lattice, the settle
+    scene's material, walls and time step), "2d" (touching hexagonal disk lattice of N
+    disks in a box, linear law, automatic time step) or "idle" (spheres 0.1 mm apart in a
+    closed box, no gravity: neighbour candidates and wall candidates but no contact, the
+    fixed cost of a step)."""
+    import dem
+    from dem.packing import lattice_packing
+
+    if kind == "idle":  # n spheres on a lattice 0.1 mm apart: candidates, no contact
+        s = P.settle_params()
+        pos, lx, ly, _ = P.lattice(n, spacing=2.1 * P.R, jitter=0.0, nz=8)
+        mat = dem.ContactMaterial(E=s["E"], nu=s["NU"], density=s["RHO"], friction=s["MU"],
+                                  restitution=s["COR"], limit_force=True)
+        walls = dem.box_walls((0, 0, 0), (lx, ly, pos[:, 2].max() + P.R * 1.1))
+        p = dem.Particles.spheres(pos, s["R"], s["RHO"])
+        return dem.Simulation(p, mat, walls, (0, 0, 0), dt=s["DT"], skin=s["SKIN"])
+    if kind == "3d":
+        s = P.settle_params()
+        pos, lx, ly = dense_lattice(P, n)
+        mat = dem.ContactMaterial(E=s["E"], nu=s["NU"], density=s["RHO"], friction=s["MU"],
+                                  restitution=s["COR"], limit_force=True)
+        walls = [dem.PlaneWall((0, 0, 0), (0, 0, 1)), dem.PlaneWall((0, 0, 0), (1, 0, 0)),
+                 dem.PlaneWall((lx, 0, 0), (-1, 0, 0)), dem.PlaneWall((0, 0, 0), (0, 1, 0)),
+                 dem.PlaneWall((0, ly, 0), (0, -1, 0))]
+        p = dem.Particles.spheres(pos, s["R"], s["RHO"])
+        return dem.Simulation(p, mat, walls, (0, 0, -s["G"]), dt=s["DT"], skin=s["SKIN"])
+    d = DISK
+    ncol = int(np.ceil(np.sqrt(n / 0.866)))  # a square-ish bed
+    width = (ncol + 0.5) * 2 * d["R"]
+    height = (int(np.ceil(n / ncol)) + 1) * np.sqrt(3.0) * d["R"] + 2 * d["R"]
+    x, _ = lattice_packing((0, 0), (width, height), d["R"], kind="hex")
+    if len(x) < n:
+        raise ValueError(f"2D dense scene: {len(x)} lattice sites for {n} disks")
+    x = x[np.lexsort((x[:, 0], x[:, 1]))][:n]  # the lowest n rows, bottom up
+    mat = dem.ContactMaterial(E=d["E"], nu=d["NU"], density=d["RHO"], friction=d["MU"],
+                              restitution=d["COR"], law="linear", kn=d["KN"], kt=d["KT"])
+    p = dem.Particles.spheres(x, d["R"], d["RHO"], dim=2)
+    walls = dem.box_walls((0, 0, 0), (width, 2 * height, 0), dim=2)
+    return dem.Simulation(p, mat, walls, (0, -d["G"], 0))
+
+
+def dense_worker(kind, n, repeats):
+    """Runs in a subprocess with NUMBA_NUM_THREADS set: prints a JSON line (loop times of
+    DENSE_STEPS steps from rest, contacts per particle at the end, KE)."""
+    P = peers_params()
+    dense_sim(P, kind, n).step(1)  # JIT (cached) outside the timing
+    loops = []
+    for _ in range(repeats):
+        sim = dense_sim(P, kind, n)
+        t = time.perf_counter()
+        sim.step(DENSE_STEPS)
+        loops.append(time.perf_counter() - t)
+    print(json.dumps(dict(loops=loops, n=sim.p.n, dt=sim.dt, builds=sim.nl.builds,
+                          contacts_end=len(sim.contacts()[0]),
+                          wall_candidates_end=len(sim.nl.wi),
+                          ke_end=sim.energy()["kinetic_translational"])))
+
+
+def run_dense_worker(kind, n, threads, repeats):
+    env = dict(os.environ, NUMBA_NUM_THREADS=str(threads))
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    out = subprocess.run([sys.executable, __file__, "--dense-worker", kind, str(n),
+                          str(repeats)], env=env, check=True, capture_output=True, text=True,
+                         cwd=root)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run_liggghts_dense(P, n, workdir, diag=False):
+    """LIGGGHTS (peers' in.settle) on the dense 3D lattice: (loop time [s], thermo rows
+    (step, ke, contacts if diag)), or None if it is not installed."""
+    exe = shutil.which("liggghts") or shutil.which("lmp_serial")
+    if exe is None:
+        return None
+    s = P.settle_params()
+    pos, lx, ly = dense_lattice(P, n)
+    lz = (pos[:, 2].max() + 3 * P.R)
+    data = Path(workdir) / f"dense_{n}.data"
+    with open(data, "w") as f:  # peers' gen_scene.py format
+        f.write(f"dense lattice N={n} spacing=2R jitter=0\n\n{n} atoms\n1 atom types\n\n")
+        f.write(f"0.0 {lx:.17g} xlo xhi\n0.0 {ly:.17g} ylo yhi\n0.0 {lz:.17g} zlo zhi\n\n")
+        f.write("Atoms\n\n")
+        for i, (x, y, z) in enumerate(pos, start=1):
+            f.write(f"{i} 1 {2 * P.R:.17g} {P.RHO:.17g} {x:.17g} {y:.17g} {z:.17g}\n")
+    var = dict(datafile=str(data), dt=s["DT"], nsteps=DENSE_STEPS, E=s["E"], nu=s["NU"],
+               cor=s["COR"], mu=s["MU"], skin=s["SKIN"], Lx=lx, Ly=ly, diag=int(diag))
+    cmd = [exe, "-in", str(PEERS / "liggghts/in.settle")]
+    for k, v in var.items():
+        cmd += ["-var", k, repr(float(v)) if isinstance(v, float) else str(v)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=workdir)
+    loop = float(re.search(r"Loop time of ([0-9.eE+-]+)", out.stdout).group(1))
+    rows = re.findall(r"^\s+(\d+)\s+\d+\s+(\S+)\s+\S+\s+(\S+)\s+\S+\s*$", out.stdout,
+                      re.MULTILINE) if diag else []
+    return loop, [(int(a), float(b), float(c)) for a, b, c in rows]
+
+
+def machine_info():
+    """CPU model and flags, the LLVM target numba compiles for, versions."""
+    import llvmlite
+    import llvmlite.binding as ll
+    import numba
+
+    feats = numba.config.CPU_FEATURES or ",".join(
+        f[1:] for f in ll.get_host_cpu_features().flatten().split(",") if f.startswith("+"))
+    info = dict(numba=numba.__version__, llvmlite=llvmlite.__version__,
+                numba_target_cpu=numba.config.CPU_NAME or ll.get_host_cpu_name(),
+                numba_target_features=feats,
+                python=sys.version.split()[0], cores=os.cpu_count())
+    try:
+        cpu = Path("/proc/cpuinfo").read_text()
+        info["cpu_model"] = re.search(r"^model name\s*:\s*(.*)$", cpu, re.MULTILINE).group(1)
+        info["cpu_flags"] = re.search(r"^flags\s*:\s*(.*)$", cpu, re.MULTILINE).group(1)
+        mhz = re.search(r"^cpu MHz\s*:\s*(.*)$", cpu, re.MULTILINE)
+        info["cpu_mhz"] = float(mhz.group(1)) if mhz else None
+    except (OSError, AttributeError):
+        import platform
+
+        info["cpu_model"] = platform.processor()
+    avx = [f for f in ("avx2", "avx512f", "fma") if f in info.get("cpu_flags", "").split()]
+    info["simd"] = avx
+    exe = shutil.which("liggghts")
+    if exe:
+        out = subprocess.run([exe, "-log", "none"], input="", capture_output=True, text=True,
+                             cwd=tempfile.gettempdir())
+        m = re.search(r"LIGGGHTS \(Version ([^,]*)", out.stdout)
+        info["liggghts"] = m.group(1) if m else exe
+    return info
+
+
+def run_dense(res, P, work):
+    """Dense scenes: dem on one numba thread, LIGGGHTS on one process (3D), interleaved."""
+    dense = dict(steps=DENSE_STEPS, repeats=DENSE_REPEATS, scenes={},
+                 note="from rest: touching lattices settle under gravity for "
+                      f"{DENSE_STEPS} steps; M particle-steps/s = N x steps / loop time, "
+                      "JIT excluded; one numba thread (NUMBA_NUM_THREADS=1) and one "
+                      "LIGGGHTS process, repeats interleaved")
+    for kind in ("3d", "2d"):
+        for n in DENSE_NS:
+            key = f"{kind}_{n}"
+            r = dict(kind=kind, N=n)
+            dem_loops, lig_loops = [], []
+            w = None
+            for _ in range(DENSE_REPEATS):
+                w = run_dense_worker(kind, n, 1, 1)
+                dem_loops += w["loops"]
+                if kind == "3d":
+                    lig = run_liggghts_dense(P, n, work)
+                    if lig is not None:
+                        lig_loops.append(lig[0])
+            mps = [n * DENSE_STEPS / t / 1e6 for t in dem_loops]
+            r["dem_1thread"] = dict(loop_s=dem_loops, mps_median=float(np.median(mps)),
+                                    mps_best=max(mps), dt=w["dt"],
+                                    contacts_per_particle_end=w["contacts_end"] / n,
+                                    neighbour_builds=w["builds"], ke_end=w["ke_end"])
+            line = f"dense {key}: dem 1 thread {np.median(mps):.2f} M p-steps/s " \
+                   f"(best {max(mps):.2f}), {w['contacts_end'] / n:.2f} contacts/particle"
+            if lig_loops:
+                lm = [n * DENSE_STEPS / t / 1e6 for t in lig_loops]
+                r["liggghts_1proc"] = dict(loop_s=lig_loops, mps_median=float(np.median(lm)),
+                                           mps_best=max(lm), source="run here")
+                r["ratio_dem_over_liggghts"] = float(np.median(mps) / np.median(lm))
+                line += f"; LIGGGHTS {np.median(lm):.2f}: ratio {r['ratio_dem_over_liggghts']:.2f}"
+                if n == DENSE_NS[0]:  # the trajectories agree: KE and contacts at the end
+                    _, rows = run_liggghts_dense(P, n, work, diag=True)
+                    r["liggghts_end"] = dict(step=rows[-1][0], ke=rows[-1][1],
+                                             contacts=rows[-1][2])
+            elif kind == "3d":
+                r["liggghts_1proc"] = dict(source="liggghts binary not found here")
+            print(line)
+            dense["scenes"][key] = r
+    w = run_dense_worker("idle", IDLE_N, 1, DENSE_REPEATS)
+    us = [t / DENSE_STEPS * 1e6 for t in w["loops"]]
+    dense["fixed_cost"] = dict(
+        N=w["n"], us_per_step_median=float(np.median(us)), us_per_step_best=min(us),
+        loop_s=w["loops"], note="spheres 0.1 mm apart in a closed box, no gravity: "
+        "candidates but no contact; one numba thread")
+    print(f"fixed cost: {w['n']} spheres without contacts, {np.median(us):.1f} us a step")
+    res["dense"] = dense
+
+
 def bar_plot(res, path):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    dense = res.get("dense")
+    settle = bool(res.get("runs"))
+    fig, axes = plt.subplots(1, int(settle) + int(dense is not None), figsize=(13, 4),
+                             squeeze=False)
+    axes = list(axes[0])
+    if dense is not None:
+        dense_plot(dense, axes[-1])
+    if not settle:
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        return
+    ax = axes[0]
     labels, w = [], 0.2
     for k, n in enumerate(res["N"]):
         r = res["runs"][str(n)]
@@ -204,10 +419,28 @@ def bar_plot(res, path):
         labels.append(f"N = {n:,}")
     ax.set_xticks(range(len(labels)), labels)
     ax.set_ylabel("M particle-steps / s (median of 3)")
-    ax.set_title("settle scene, 2000 steps: numba dem (threads, MPI ranks) vs LIGGGHTS")
+    ax.set_title("settle scene, 2000 steps: numba dem (threads, MPI ranks) vs LIGGGHTS",
+                 fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def dense_plot(dense, ax):
+    keys = list(dense["scenes"])
+    for k, key in enumerate(keys):
+        r = dense["scenes"][key]
+        bars = [("dem 1 thread", r["dem_1thread"]["mps_median"])]
+        if "mps_median" in r.get("liggghts_1proc", {}):
+            bars.append(("LIGGGHTS 1 proc", r["liggghts_1proc"]["mps_median"]))
+        for b, (lab, val) in enumerate(bars):
+            off = (b - 0.5) * 0.4 if len(bars) == 2 else 0.0
+            ax.bar(k + off, val, 0.4, color=f"C{b}", label=lab if k == 0 else None)
+            ax.text(k + off, val, f"{val:.1f}", ha="center", va="bottom", fontsize=7)
+    ax.set_xticks(range(len(keys)), [k.replace("_", "\nN = ") for k in keys], fontsize=8)
+    ax.set_ylabel("M particle-steps / s (median)")
+    ax.set_title(f"dense lattices from rest, {dense['steps']} steps, one core", fontsize=9)
+    ax.legend(fontsize=8)
 
 
 def main():
@@ -215,16 +448,35 @@ def main():
     ap.add_argument("--out", default="output/dem_throughput/")
     ap.add_argument("--worker", nargs=3, type=int, help=argparse.SUPPRESS)
     ap.add_argument("--mpi-worker", nargs=2, type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--dense-worker", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--scenes", default="settle,dense",
+                    help="comma-separated: settle (peers' scene, N = 10k, 50k: threads, MPI "
+                         "ranks, LIGGGHTS) and/or dense (window-size lattices)")
     args = ap.parse_args()
     if args.worker:
         return worker(*args.worker)
     if args.mpi_worker:
         return mpi_worker(*args.mpi_worker)
+    if args.dense_worker:
+        kind, n, repeats = args.dense_worker
+        return dense_worker(kind, int(n), int(repeats))
+    scenes = set(args.scenes.split(","))
+    if not scenes <= {"settle", "dense"}:
+        ap.error(f"--scenes: unknown {sorted(scenes - {'settle', 'dense'})}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     P = peers_params()
     res = dict(scene="peers settle (tools/params.py settle_params, lattice)", N=NS,
-               nsteps=NSTEPS, repeats=REPEATS, params=P.settle_params(), runs={})
+               nsteps=NSTEPS, repeats=REPEATS, params=P.settle_params(), runs={},
+               machine=machine_info(), scenes_run=sorted(scenes))
+    print(f"machine: {res['machine'].get('cpu_model')}, numba target "
+          f"{res['machine']['numba_target_cpu']}")
+    if "dense" in scenes:
+        with tempfile.TemporaryDirectory() as work:
+            run_dense(res, P, work)
+    if "settle" not in scenes:
+        res["N"] = []
+        return finish(res, out)
 
     # ---------------------------------------------------------------- JIT compile time
     with tempfile.TemporaryDirectory() as cache:
@@ -314,12 +566,7 @@ def main():
         wall_candidates=forces.WALL_PARALLEL_MIN,
         note="with more than one numba thread the prange drivers run from these sizes on; "
              "below them the 2-thread run uses the serial kernels (same bits either way)")
-    res["load_average_at_end"] = os.getloadavg()
-    res["machine_note"] = ("2-vCPU VM shared with other jobs: compare medians and rerun; the "
-                           "LIGGGHTS numbers from RESULTS.md were measured on an idle machine")
-    (out / "results.json").write_text(json.dumps(res, indent=1, default=str))
-    bar_plot(res, out / "throughput.png")
-    print(f"wrote {out / 'results.json'} and {out / 'throughput.png'}")
+    finish(res, out)
 
     # ---------------------------------------------------------------- checks
     for n in NS:
@@ -328,6 +575,16 @@ def main():
         c2000 = c[str(NSTEPS)] if str(NSTEPS) in c else c[NSTEPS]
         assert abs(rn["ke_2000_rel_diff"]) < 0.02, "KE(2000) departs from LIGGGHTS by > 2 %"
         assert abs(c2000 / LIGGGHTS_RESULTS[n]["contacts"][2000] - 1) < 0.02
+
+
+def finish(res, out):
+    """Write results.json and the plot."""
+    res["load_average_at_end"] = os.getloadavg()
+    res["machine_note"] = ("2-vCPU VM shared with other jobs: compare medians and rerun; the "
+                           "LIGGGHTS numbers from RESULTS.md were measured on an idle machine")
+    (out / "results.json").write_text(json.dumps(res, indent=1, default=str))
+    bar_plot(res, out / "throughput.png")
+    print(f"wrote {out / 'results.json'} and {out / 'throughput.png'}")
 
 
 if __name__ == "__main__":

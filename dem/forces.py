@@ -10,13 +10,13 @@ cache works). Two drivers share the per-contact code:
   (used from ``PARALLEL_MIN`` candidate pairs on when numba runs more than one thread,
   and whenever the caller wants the rows); wall contacts likewise (`_wall_rows`, then a
   serial scatter in candidate order) from ``WALL_PARALLEL_MIN`` candidates on;
-- fused: one serial loop that resolves a contact into a scratch row and scatters it at
-  once (no m x NOUT array streamed through memory twice).
+- fused: one serial loop that resolves a contact on scalars (`_resolve`) and adds it to
+  its two particles at once (no row array in memory at all).
 
 Most candidate pairs of a Verlet list are open: a sqrt-free pre-test
 (``d^2 > (r_i + r_j)^2 (1 + 1e-12)``, which implies delta <= 0 whatever the rounding)
 releases them before their kinematics and parameter row are touched; walls use the exact
-open test of `wall_kinematics` up front. Without a cell the integrator passes a compact
+open test `wall_delta` up front. Without a cell the integrator passes a compact
 layout of the list (`pair_layout`: offsets per particle, int32 partners, live flags) so
 that an open candidate with no history costs a 4-byte index and one flag.
 
@@ -41,9 +41,9 @@ import numpy as np
 from numba import get_num_threads, njit, prange
 
 from dem.contact import P_LAW, P_MUR
-from dem.contact.hertz_mindlin import hertz_mindlin_force
-from dem.contact.kinematics import pair_kinematics, periodic_pair_kinematics, project_history, wall_kinematics
-from dem.contact.linear import linear_force
+from dem.contact.hertz_mindlin import hertz_mindlin_law
+from dem.contact.kinematics import contact_kinematics, project_history, wall_contact_kinematics, wall_delta
+from dem.contact.linear import linear_law
 
 NOUT = 23
 PARALLEL_MIN = 4096
@@ -62,71 +62,8 @@ NO_CELL = (0, np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((0, 3)))
 
 
 @njit(cache=True, inline="always")
-def apply_law(law, prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
-    """Law registry: id -> law function (ids in `dem.contact.LAWS`)."""
-    if law == 0:
-        return linear_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt)
-    return hertz_mindlin_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt)
-
-
-@njit(cache=True, inline="always")
-def _cross_arm(out, col, nx, ny, nz, fx, fy, fz, ai, aj):
-    """Torques -a n x f on i (cols col..col+2) and j (col+3..col+5)."""
-    cx = ny * fz - nz * fy
-    cy = nz * fx - nx * fz
-    cz = nx * fy - ny * fx
-    out[col], out[col + 1], out[col + 2] = -ai * cx, -ai * cy, -ai * cz
-    out[col + 3], out[col + 4], out[col + 5] = -aj * cx, -aj * cy, -aj * cz
-
-
-@njit(cache=True, inline="always")
-def _contact(k, kin, prm, hist, slip, etan, dt, wrx, wry, wrz, out):
-    """Resolve contact k with kinematics ``kin``; wr = omega_i - omega_j [rad/s] (rolling).
-    Writes row out (NOUT,); updates hist[k], slip[k], etan[k]."""
-    nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj = kin
-    if delta <= 0.0:  # open: only column 18 is written; a loaded spring is released
-        out[18] = 0.0
-        if etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0 or hist[k, 1] != 0.0 \
-                or hist[k, 2] != 0.0:
-            hist[k, 0] = hist[k, 1] = hist[k, 2] = 0.0
-            slip[k] = 0
-            etan[k] = 0.0
-        return
-    sx, sy, sz = project_history(hist[k, 0], hist[k, 1], hist[k, 2], nx, ny, nz)
-    fn, fnd, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, sl, e_n, e_pre, e_t, p_fric = \
-        apply_law(int(prm[P_LAW]), prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz,
-                  slip[k], dt)
-    hist[k, 0], hist[k, 1], hist[k, 2] = sx, sy, sz
-    slip[k] = sl
-    out[0], out[1], out[2] = fn * nx + ftx, fn * ny + fty, fn * nz + ftz
-    out[9], out[10], out[11] = fnd * nx + fdx, fnd * ny + fdy, fnd * nz + fdz
-    fe = fn - fnd
-    out[19], out[20], out[21] = fe * nx, fe * ny, fe * nz
-    _cross_arm(out, 3, nx, ny, nz, ftx, fty, ftz, ai, aj)
-    _cross_arm(out, 12, nx, ny, nz, fdx, fdy, fdz, ai, aj)
-    mur = prm[P_MUR]
-    if mur > 0.0:
-        w = math.sqrt(wrx * wrx + wry * wry + wrz * wrz)
-        if w > 0.0:
-            mr = mur * abs(fn) * reff / w  # constant rolling torque against the relative spin
-            out[3] -= mr * wrx
-            out[4] -= mr * wry
-            out[5] -= mr * wrz
-            out[6] += mr * wrx
-            out[7] += mr * wry
-            out[8] += mr * wrz
-    out[18] = e_n + e_t
-    out[22] = e_t
-    etan[k] = e_t
-
-
-_SURE_OPEN = 1.0 + 1e-12
-"""d^2 > (r_i + r_j)^2 x this: the pair is open whatever the rounding of d = sqrt(d^2)."""
-
-
-@njit(cache=True, inline="always")
 def _release(k, hist, slip, etan):
-    """An open contact k: a loaded spring is released (as `_contact` does)."""
+    """An open contact k: a loaded spring is released."""
     if etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0 or hist[k, 1] != 0.0 \
             or hist[k, 2] != 0.0:
         hist[k, 0] = hist[k, 1] = hist[k, 2] = 0.0
@@ -134,119 +71,326 @@ def _release(k, hist, slip, etan):
         etan[k] = 0.0
 
 
-@njit(cache=True, inline="always")
-def _surely_open(x, radius, i, j):
-    """Cheap pre-test (no sqrt, no parameter row): True only for pairs `_contact` would
-    find open (delta <= 0), so skipping them changes no result bit."""
-    dx = x[j, 0] - x[i, 0]
-    dy = x[j, 1] - x[i, 1]
-    dz = x[j, 2] - x[i, 2]
-    rs = radius[i] + radius[j]
-    return dx * dx + dy * dy + dz * dz > rs * rs * _SURE_OPEN
+# The per-contact code is split by what it touches. Helpers that take arrays are straight
+# loads or stores (`_params`, `_kin_ij`, `_kin_wall`, `_history`, `_put_history`,
+# `_put_row`, `_row`, `_add_i`, `_add_j`, `_add_wall`); those that branch (`_resolve`, the
+# laws, the kinematics of `dem.contact.kinematics`) take scalars only. An array passed into
+# an inlined helper costs numba an atomic reference count at its entry and exit, which its
+# reference count pruning removes only when no branch lies between them: the pair loops
+# that passed arrays (and a parameter-row view) into a branching per-contact helper did
+# about 20 such counts per touching contact and ran 1.8-2.5x slower on dense packings
+# (pair pass alone; tests/dem/test_dense_paths.py checks the drivers agree to the bit).
 
 
 @njit(cache=True, inline="always")
-def _pair_one(k, pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
-              per, h, lg, img, out):
-    i = pi[k]
-    j = pj[k]
-    if not per and _surely_open(x, radius, i, j):
-        out[18] = 0.0
-        _release(k, hist, slip, etan)
-        return
-    if per:
-        kin = periodic_pair_kinematics(x, v, omega, radius, mass, i, j, h, lg, img[k, 0],
-                                       img[k, 1], img[k, 2])
-    else:
-        kin = pair_kinematics(x, v, omega, radius, mass, i, j)
-    _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
-             omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1], omega[i, 2] - omega[j, 2],
-             out)
+def apply_law(law, prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
+    """Law registry: id -> law function (ids in `dem.contact.LAWS`); prm: the parameter
+    scalars of `_params`."""
+    _, es, gs, beta, mus, mud, kn, kt, _, clip = prm
+    if law == 0:
+        return linear_law(kn, kt, beta, mus, mud, clip, delta, reff, meff, vn, vtx, vty, vtz,
+                          sx, sy, sz, slip, dt)
+    return hertz_mindlin_law(es, gs, beta, mus, mud, clip, delta, reff, meff, vn, vtx, vty,
+                             vtz, sx, sy, sz, slip, dt)
 
 
 @njit(cache=True, inline="always")
-def _scatter_row(i, j, row, force, torque, fe, fd, td, hit):
-    """Add one touching row to particles i and j (j < 0: a wall, i only); flag them in hit
-    (n,) int8 (if not empty): the integrator then knows whose force arrays are non-zero."""
-    if hit.shape[0] > 0:
-        hit[i] = 1
-        if j >= 0:
-            hit[j] = 1
-    for c in range(3):
-        force[i, c] -= row[c]
-        torque[i, c] += row[3 + c]
-        fe[i, c] -= row[19 + c]
-        fd[i, c] -= row[9 + c]
-        td[i, c] += row[12 + c]
-        if j >= 0:
-            force[j, c] += row[c]
-            torque[j, c] += row[6 + c]
-            fe[j, c] += row[19 + c]
-            fd[j, c] += row[9 + c]
-            td[j, c] += row[15 + c]
+def _params(table, a, b):
+    """Pair parameter row of materials a, b as NPARAM scalars (P_* order), read element by
+    element: a row view ``table[a, b]`` would be reference counted."""
+    return (table[a, b, 0], table[a, b, 1], table[a, b, 2], table[a, b, 3], table[a, b, 4],
+            table[a, b, 5], table[a, b, 6], table[a, b, 7], table[a, b, 8], table[a, b, 9])
+
+
+@njit(cache=True, inline="always")
+def _resolve(kin, prm, sx, sy, sz, slip, wrx, wry, wrz, dt):
+    """One contact with overlap kin[3] > 0, on scalars only. kin: `pair_kinematics`; prm:
+    `_params`; s, slip: the spring [m] and slip flag of its history; wr = omega_i - omega_j
+    [rad/s] (rolling). Returns 27 values: the NOUT values of its row (layout in the module
+    docstring), then the new spring (3) and slip flag."""
+    nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj = kin
+    sx, sy, sz = project_history(sx, sy, sz, nx, ny, nz)
+    fn, fnd, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, sl, e_n, e_pre, e_t, p_fric = \
+        apply_law(int(prm[P_LAW]), prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz,
+                  slip, dt)
+    # torques -a n x f on i and j of the tangential force and of its damping part
+    cx = ny * ftz - nz * fty
+    cy = nz * ftx - nx * ftz
+    cz = nx * fty - ny * ftx
+    tix, tiy, tiz = -ai * cx, -ai * cy, -ai * cz
+    tjx, tjy, tjz = -aj * cx, -aj * cy, -aj * cz
+    mur = prm[P_MUR]
+    if mur > 0.0:
+        w = math.sqrt(wrx * wrx + wry * wry + wrz * wrz)
+        if w > 0.0:
+            mr = mur * abs(fn) * reff / w  # constant rolling torque against the relative spin
+            tix -= mr * wrx
+            tiy -= mr * wry
+            tiz -= mr * wrz
+            tjx += mr * wrx
+            tjy += mr * wry
+            tjz += mr * wrz
+    gx = ny * fdz - nz * fdy
+    gy = nz * fdx - nx * fdz
+    gz = nx * fdy - ny * fdx
+    fe = fn - fnd
+    return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz, tix, tiy, tiz, tjx, tjy, tjz,
+            fnd * nx + fdx, fnd * ny + fdy, fnd * nz + fdz, -ai * gx, -ai * gy, -ai * gz,
+            -aj * gx, -aj * gy, -aj * gz, e_n + e_t, fe * nx, fe * ny, fe * nz, e_t,
+            sx, sy, sz, sl)
+
+
+@njit(cache=True, inline="always")
+def _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, ux, uy, uz):
+    """`pair_kinematics` of a pair whose caller has the branch d = (dx, dy, dz), its length
+    and the overlap delta > 0 (ux: the image velocity of a periodic cell, else 0)."""
+    return contact_kinematics(dx, dy, dz, d, delta, radius[i], radius[j], mass[i], mass[j],
+                              v[i, 0], v[i, 1], v[i, 2], v[j, 0] + ux, v[j, 1] + uy,
+                              v[j, 2] + uz, omega[i, 0], omega[i, 1], omega[i, 2],
+                              omega[j, 0], omega[j, 1], omega[j, 2])
+
+
+@njit(cache=True, inline="always")
+def _kin_wall(x, v, omega, radius, mass, i, wall_n, wall_u, w, delta):
+    """`wall_kinematics` of particle i touching wall w (overlap delta > 0)."""
+    return wall_contact_kinematics(delta, radius[i], mass[i], wall_n[w, 0], wall_n[w, 1],
+                                   wall_n[w, 2], v[i, 0], v[i, 1], v[i, 2], wall_u[w, 0],
+                                   wall_u[w, 1], wall_u[w, 2], omega[i, 0], omega[i, 1],
+                                   omega[i, 2])
+
+
+@njit(cache=True, inline="always")
+def _history(k, hist, slip):
+    """(sx, sy, sz, slip) of contact k."""
+    return hist[k, 0], hist[k, 1], hist[k, 2], slip[k]
+
+
+@njit(cache=True, inline="always")
+def _put_history(k, r, hist, slip, etan):
+    """Store the new history of contact k from the values r of `_resolve`."""
+    hist[k, 0] = r[23]
+    hist[k, 1] = r[24]
+    hist[k, 2] = r[25]
+    slip[k] = r[26]
+    etan[k] = r[22]
+
+
+@njit(cache=True, inline="always")
+def _put_row(out, k, r):
+    """Row k of out (NOUT) from the values r of `_resolve`."""
+    out[k, 0], out[k, 1], out[k, 2], out[k, 3], out[k, 4], out[k, 5] = r[:6]
+    out[k, 6], out[k, 7], out[k, 8], out[k, 9], out[k, 10], out[k, 11] = r[6:12]
+    out[k, 12], out[k, 13], out[k, 14], out[k, 15], out[k, 16], out[k, 17] = r[12:18]
+    out[k, 18], out[k, 19], out[k, 20], out[k, 21], out[k, 22] = r[18:23]
+
+
+@njit(cache=True, inline="always")
+def _row(out, k):
+    """Row k of out as the first NOUT values of a `_resolve` result."""
+    return (out[k, 0], out[k, 1], out[k, 2], out[k, 3], out[k, 4], out[k, 5], out[k, 6],
+            out[k, 7], out[k, 8], out[k, 9], out[k, 10], out[k, 11], out[k, 12], out[k, 13],
+            out[k, 14], out[k, 15], out[k, 16], out[k, 17], out[k, 18], out[k, 19],
+            out[k, 20], out[k, 21], out[k, 22])
+
+
+@njit(cache=True, inline="always")
+def _add_i(i, r, force, torque, fe, fd, td):
+    """Add the contact values r (`_resolve`, `_row`) to particle i."""
+    force[i, 0] -= r[0]
+    force[i, 1] -= r[1]
+    force[i, 2] -= r[2]
+    torque[i, 0] += r[3]
+    torque[i, 1] += r[4]
+    torque[i, 2] += r[5]
+    fe[i, 0] -= r[19]
+    fe[i, 1] -= r[20]
+    fe[i, 2] -= r[21]
+    fd[i, 0] -= r[9]
+    fd[i, 1] -= r[10]
+    fd[i, 2] -= r[11]
+    td[i, 0] += r[12]
+    td[i, 1] += r[13]
+    td[i, 2] += r[14]
+
+
+@njit(cache=True, inline="always")
+def _add_j(j, r, force, torque, fe, fd, td):
+    """Add the contact values r (`_resolve`, `_row`) to particle j."""
+    force[j, 0] += r[0]
+    force[j, 1] += r[1]
+    force[j, 2] += r[2]
+    torque[j, 0] += r[6]
+    torque[j, 1] += r[7]
+    torque[j, 2] += r[8]
+    fe[j, 0] += r[19]
+    fe[j, 1] += r[20]
+    fe[j, 2] += r[21]
+    fd[j, 0] += r[9]
+    fd[j, 1] += r[10]
+    fd[j, 2] += r[11]
+    td[j, 0] += r[15]
+    td[j, 1] += r[16]
+    td[j, 2] += r[17]
+
+
+@njit(cache=True, inline="always")
+def _add_wall(w, r, wall_f):
+    """Add the contact values r to the resultants of wall w (the row's "particle j")."""
+    wall_f[w, 0] += r[0]
+    wall_f[w, 1] += r[1]
+    wall_f[w, 2] += r[2]
+    wall_f[w, 3] += r[19]
+    wall_f[w, 4] += r[20]
+    wall_f[w, 5] += r[21]
+    wall_f[w, 6] += r[9]
+    wall_f[w, 7] += r[10]
+    wall_f[w, 8] += r[11]
+
+
+_SURE_OPEN = 1.0 + 1e-12
+"""d^2 > (r_i + r_j)^2 x this: the pair is open whatever the rounding of d = sqrt(d^2)."""
+
+
+@njit(cache=True, inline="always")
+def _image(x, h, img, i, j, k):
+    """Branch from i to the image x_j + h img[k] of j [m] (periodic cells)."""
+    ix = img[k, 0]
+    iy = img[k, 1]
+    iz = img[k, 2]
+    return (x[j, 0] - x[i, 0] + h[0, 0] * ix + h[0, 1] * iy + h[0, 2] * iz,
+            x[j, 1] - x[i, 1] + h[1, 0] * ix + h[1, 1] * iy + h[1, 2] * iz,
+            x[j, 2] - x[i, 2] + h[2, 0] * ix + h[2, 1] * iy + h[2, 2] * iz)
+
+
+@njit(cache=True, inline="always")
+def _image_velocity(lg, dx, dy, dz):
+    """Velocity L d of j's image relative to i beyond v_j - v_i [m/s]."""
+    return (lg[0, 0] * dx + lg[0, 1] * dy + lg[0, 2] * dz,
+            lg[1, 0] * dx + lg[1, 1] * dy + lg[1, 2] * dz,
+            lg[2, 0] * dx + lg[2, 1] * dy + lg[2, 2] * dz)
+
+
+@njit(cache=True)
+def _pair_rows_range(lo, hi, pi, pj, x, v, omega, radius, mass, material, table, hist, slip,
+                     etan, dt, per, h, lg, img, out):
+    """Rows lo:hi of `_pair_rows` (open rows: only column 18, = 0)."""
+    for k in range(lo, hi):
+        i = pi[k]
+        j = pj[k]
+        if per:
+            dx, dy, dz = _image(x, h, img, i, j, k)
+            ux, uy, uz = _image_velocity(lg, dx, dy, dz)
+        else:
+            dx = x[j, 0] - x[i, 0]
+            dy = x[j, 1] - x[i, 1]
+            dz = x[j, 2] - x[i, 2]
+            ux = uy = uz = 0.0
+        rs = radius[i] + radius[j]
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 > rs * rs * _SURE_OPEN:
+            out[k, 18] = 0.0
+            _release(k, hist, slip, etan)
+            continue
+        d = math.sqrt(d2)
+        delta = rs - d
+        if delta <= 0.0:
+            out[k, 18] = 0.0
+            _release(k, hist, slip, etan)
+            continue
+        kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, ux, uy, uz)
+        sx, sy, sz, sl = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], material[j]), sx, sy, sz, sl,
+                     omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
+                     omega[i, 2] - omega[j, 2], dt)
+        _put_history(k, r, hist, slip, etan)
+        _put_row(out, k, r)
+
+
+PAIR_CHUNK = 1024
+"""Candidate pairs per task of `_pair_rows`."""
 
 
 @njit(parallel=True, cache=True)
 def _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt, per,
                h, lg, img, out):
-    for k in prange(pi.shape[0]):
-        _pair_one(k, pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
-                  dt, per, h, lg, img, out[k])
+    """Rows of all candidate pairs (any order of pairs, a periodic cell or not), chunks
+    of PAIR_CHUNK over the threads."""
+    m = pi.shape[0]
+    nchunk = (m + PAIR_CHUNK - 1) // PAIR_CHUNK
+    for t in prange(nchunk):
+        b = spread(t, nchunk)
+        _pair_rows_range(b * PAIR_CHUNK, min(m, (b + 1) * PAIR_CHUNK), pi, pj, x, v, omega,
+                         radius, mass, material, table, hist, slip, etan, dt, per, h, lg, img,
+                         out)
 
 
 @njit(cache=True)
 def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
-                per, h, lg, img, row, force, torque, fe, fd, td, hit):
-    """Serial resolve-and-scatter; row (NOUT,) scratch. Returns (elastic, spring) [J].
-    Without a cell, pairs that are surely open are released without touching their
-    parameter row (one loop per case: a shared loop body compiles to slow code)."""
+                per, h, lg, img, force, torque, fe, fd, td, hit):
+    """Serial resolve-and-scatter over any pair list. Returns (elastic, spring) [J]. Pairs
+    that are surely open are released without touching their parameter row."""
     e = 0.0
     es = 0.0
-    if per:
-        for k in range(pi.shape[0]):
-            i = pi[k]
-            j = pj[k]
-            kin = periodic_pair_kinematics(x, v, omega, radius, mass, i, j, h, lg, img[k, 0],
-                                           img[k, 1], img[k, 2])
-            _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
-                     omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                     omega[i, 2] - omega[j, 2], row)
-            if row[18] == 0.0:
-                continue
-            _scatter_row(i, j, row, force, torque, fe, fd, td, hit)
-            e += row[18]
-            es += row[22]
-        return e, es
+    mark = hit.shape[0] > 0
     for k in range(pi.shape[0]):
         i = pi[k]
         j = pj[k]
-        if _surely_open(x, radius, i, j):
+        if per:
+            dx, dy, dz = _image(x, h, img, i, j, k)
+            ux, uy, uz = _image_velocity(lg, dx, dy, dz)
+        else:
+            dx = x[j, 0] - x[i, 0]
+            dy = x[j, 1] - x[i, 1]
+            dz = x[j, 2] - x[i, 2]
+            ux = uy = uz = 0.0
+        rs = radius[i] + radius[j]
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 > rs * rs * _SURE_OPEN:
             _release(k, hist, slip, etan)
             continue
-        kin = pair_kinematics(x, v, omega, radius, mass, i, j)
-        _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
-                 omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                 omega[i, 2] - omega[j, 2], row)
-        if row[18] == 0.0:
+        d = math.sqrt(d2)
+        delta = rs - d
+        if delta <= 0.0:
+            _release(k, hist, slip, etan)
             continue
-        _scatter_row(i, j, row, force, torque, fe, fd, td, hit)
-        e += row[18]
-        es += row[22]
+        kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, ux, uy, uz)
+        sx, sy, sz, sl = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], material[j]), sx, sy, sz, sl,
+                     omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
+                     omega[i, 2] - omega[j, 2], dt)
+        _put_history(k, r, hist, slip, etan)
+        if r[18] == 0.0:
+            continue
+        if mark:
+            hit[i] = 1
+            hit[j] = 1
+        _add_i(i, r, force, torque, fe, fd, td)
+        _add_j(j, r, force, torque, fe, fd, td)
+        e += r[18]
+        es += r[22]
     return e, es
 
 
 @njit(cache=True)
 def _scatter(pi, pj, out, force, torque, fe, fd, td, hit):
-    """Sum rows onto particles in contact order (pj < 0: wall contacts, i only). Returns
-    (elastic energy, tangential spring energy) [J]."""
+    """Sum the touching rows onto particles in contact order (the additions of the fused
+    loops, so the same bits). Returns (elastic energy, tangential spring energy) [J]."""
     e = 0.0
     es = 0.0
+    mark = hit.shape[0] > 0
     for k in range(pi.shape[0]):
         if out[k, 18] == 0.0:
             continue  # not touching: the rest of the row is not written
-        _scatter_row(pi[k], pj[k], out[k], force, torque, fe, fd, td, hit)
-        e += out[k, 18]
-        es += out[k, 22]
+        i = pi[k]
+        j = pj[k]
+        r = _row(out, k)
+        if mark:
+            hit[i] = 1
+            hit[j] = 1
+        _add_i(i, r, force, torque, fe, fd, td)
+        _add_j(j, r, force, torque, fe, fd, td)
+        e += r[18]
+        es += r[22]
     return e, es
 
 
@@ -289,14 +433,16 @@ def refresh_live(hist, slip, etan, live):
 
 @njit(cache=True)
 def _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist, slip,
-              etan, dt, row, force, torque, fe, fd, td, hit):
+              etan, dt, force, torque, fe, fd, td, hit):
     """`_pair_fused` without a cell, over the compact layout of `pair_layout`: particle i's
     position and radius are loaded once for all its partners, an open pair costs its
     4-byte partner index and, unless its history is known to be zero (live[k] = 0), a
-    look at that history. Same results, same order. (Keeping i's sums in registers over
-    its partners was tried: slower, register pressure.)"""
+    look at that history; a touching one is resolved on scalars and added to i and j at
+    once. Same results, same order. (Keeping i's sums in registers over its partners was
+    tried: slower, register pressure.)"""
     e = 0.0
     es = 0.0
+    mark = hit.shape[0] > 0
     for i in range(start.shape[0] - 1):
         k0 = start[i]
         k1 = start[i + 1]
@@ -306,27 +452,41 @@ def _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table, his
         xi1 = x[i, 1]
         xi2 = x[i, 2]
         ri = radius[i]
+        mi = material[i]
         for k in range(k0, k1):
             j = np.int64(pj32[k])
             dx = x[j, 0] - xi0
             dy = x[j, 1] - xi1
             dz = x[j, 2] - xi2
             rs = ri + radius[j]
-            if dx * dx + dy * dy + dz * dz > rs * rs * _SURE_OPEN:
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 > rs * rs * _SURE_OPEN:
                 if live[k]:
                     _release(k, hist, slip, etan)
                     live[k] = 0
                 continue
             live[k] = 1
-            kin = pair_kinematics(x, v, omega, radius, mass, i, j)
-            _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
-                     omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                     omega[i, 2] - omega[j, 2], row)
-            if row[18] == 0.0:
+            d = math.sqrt(d2)
+            delta = rs - d
+            if delta <= 0.0:
+                _release(k, hist, slip, etan)
                 continue
-            _scatter_row(i, j, row, force, torque, fe, fd, td, hit)
-            e += row[18]
-            es += row[22]
+            kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, 0.0, 0.0,
+                          0.0)
+            sx, sy, sz, sl = _history(k, hist, slip)
+            r = _resolve(kin, _params(table, mi, material[j]), sx, sy, sz, sl,
+                         omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
+                         omega[i, 2] - omega[j, 2], dt)
+            _put_history(k, r, hist, slip, etan)
+            if r[18] == 0.0:
+                continue
+            if mark:
+                hit[i] = 1
+                hit[j] = 1
+            _add_i(i, r, force, torque, fe, fd, td)
+            _add_j(j, r, force, torque, fe, fd, td)
+            e += r[18]
+            es += r[22]
     return e, es
 
 
@@ -351,11 +511,9 @@ def spread(b, nchunk):
     return (b * SPREAD) % np.int64(nchunk)
 
 
-# `_rows_range` repeats the pair body of `_pair_csr`, and `_wall_rows_range` /
-# `_wall_scatter` the open test and wall scatter of `_wall_all`, on purpose: the shared
-# body as an inline="always" helper returning whether the pair touches measured 6x slower
-# in `_pair_csr` (settle scene, 10k grains: 2000 vs 340 us per step) and 25 % slower in
-# `_wall_all`, with the same bits.
+# `_rows_range` repeats the pair body of `_pair_csr`, and `_wall_rows_range` the open test
+# of `_wall_all`, on purpose: a shared body in an inlined helper would take arrays across
+# branches (see the note above `apply_law`).
 @njit(cache=True)
 def _rows_range(lo, hi, start, pj32, live, x, v, omega, radius, mass, material, table, hist,
                 slip, etan, dt, out, touched):
@@ -365,23 +523,35 @@ def _rows_range(lo, hi, start, pj32, live, x, v, omega, radius, mass, material, 
         xi1 = x[i, 1]
         xi2 = x[i, 2]
         ri = radius[i]
+        mi = material[i]
         for k in range(start[i], start[i + 1]):
             j = np.int64(pj32[k])
             dx = x[j, 0] - xi0
             dy = x[j, 1] - xi1
             dz = x[j, 2] - xi2
             rs = ri + radius[j]
-            if dx * dx + dy * dy + dz * dz > rs * rs * _SURE_OPEN:
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 > rs * rs * _SURE_OPEN:
                 if live[k]:
                     _release(k, hist, slip, etan)
                     live[k] = 0
                 continue
             live[k] = 1
-            kin = pair_kinematics(x, v, omega, radius, mass, i, j)
-            _contact(k, kin, table[material[i], material[j]], hist, slip, etan, dt,
-                     omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                     omega[i, 2] - omega[j, 2], out[k])
-            if out[k, 18] != 0.0:
+            d = math.sqrt(d2)
+            delta = rs - d
+            if delta <= 0.0:
+                out[k, 18] = 0.0
+                _release(k, hist, slip, etan)
+                continue
+            kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, 0.0, 0.0,
+                          0.0)
+            sx, sy, sz, sl = _history(k, hist, slip)
+            r = _resolve(kin, _params(table, mi, material[j]), sx, sy, sz, sl,
+                         omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
+                         omega[i, 2] - omega[j, 2], dt)
+            _put_history(k, r, hist, slip, etan)
+            _put_row(out, k, r)
+            if r[18] != 0.0:
                 # j may lie in another thread's chunk: store only a change (two threads
                 # may store the same 1; repeated stores would bounce the cache line)
                 if touched[i] == 0:
@@ -475,9 +645,9 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
 
     pi, pj (m,) int64 candidate pairs; hist (m, 3) tangential springs [m]; slip (m,) int8;
     etan (m,) spring energies [J]; out (>= m, NOUT) rows (written if ``rows`` or from
-    ``PARALLEL_MIN`` candidate pairs on with more than one numba thread; else only out[0]
-    is used as scratch); cell: (flag, h
-    (3, 3) [m], velocity gradient (3, 3) [1/s], image shifts (m, 3)) of a periodic cell.
+    ``PARALLEL_MIN`` candidate pairs on with more than one numba thread; else not used);
+    cell: (flag, h (3, 3) [m], velocity gradient (3, 3) [1/s], image shifts (m, 3)) of a
+    periodic cell.
     hit (n,) int8, optional: set to 1 for every particle that receives a contact.
     layout: `pair_layout` of (pi, pj) with live flags kept up to date by the kernels
     (without a cell only), or None.
@@ -508,50 +678,40 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
         return _scatter(pi, pj, out, force, torque, fe, fd, td, hit)
     if layout is not None:
         return _pair_csr(*layout[:3], x, v, omega, radius, mass, material, table, hist, slip,
-                         etan, dt, out[0], force, torque, fe, fd, td, hit)
+                         etan, dt, force, torque, fe, fd, td, hit)
     return _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
-                       dt, per, h, lg, img, out[0], force, torque, fe, fd, td, hit)
-
-
-@njit(cache=True, inline="always")
-def _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
-              wall_mat, table, hist, slip, etan, dt, out):
-    i = wi[k]
-    w = ww[k]
-    kin = wall_kinematics(x, v, omega, radius, mass, i, wall_p, wall_n, wall_u, w)
-    _contact(k, kin, table[material[i], wall_mat[w]], hist, slip, etan, dt,
-             omega[i, 0], omega[i, 1], omega[i, 2], out)
+                       dt, per, h, lg, img, force, torque, fe, fd, td, hit)
 
 
 @njit(cache=True)
 def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u, wall_mat,
-              table, hist, slip, etan, dt, out, force, torque, fe, fd, td, wall_f, hit):
+              table, hist, slip, etan, dt, force, torque, fe, fd, td, wall_f, hit):
     """Serial wall contacts (few) straight into particles and walls. wall_f (nw, 9):
     resultant on each wall of the total, conservative normal and damping forces [N].
     Returns (elastic, spring) [J]."""
     e = 0.0
     es = 0.0
-    row = out[0]
+    mark = hit.shape[0] > 0
     for k in range(wi.shape[0]):
         i = wi[k]
         w = ww[k]
-        # open (the test of `wall_kinematics`, same arithmetic): release, no parameter row
-        if radius[i] - ((x[i, 0] - wall_p[w, 0]) * wall_n[w, 0]
-                        + (x[i, 1] - wall_p[w, 1]) * wall_n[w, 1]
-                        + (x[i, 2] - wall_p[w, 2]) * wall_n[w, 2]) <= 0.0:
+        delta = wall_delta(x, radius, i, wall_p, wall_n, w)
+        if delta <= 0.0:  # open: release, no parameter row
             _release(k, hist, slip, etan)
             continue
-        _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
-                  wall_mat, table, hist, slip, etan, dt, row)
-        if row[18] == 0.0:
+        kin = _kin_wall(x, v, omega, radius, mass, i, wall_n, wall_u, w, delta)
+        sx, sy, sz, sl = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], wall_mat[w]), sx, sy, sz, sl,
+                     omega[i, 0], omega[i, 1], omega[i, 2], dt)
+        _put_history(k, r, hist, slip, etan)
+        if r[18] == 0.0:
             continue
-        _scatter_row(i, -1, row, force, torque, fe, fd, td, hit)
-        for c in range(3):  # the row's "particle j" is the wall
-            wall_f[w, c] += row[c]
-            wall_f[w, 3 + c] += row[19 + c]
-            wall_f[w, 6 + c] += row[9 + c]
-        e += row[18]
-        es += row[22]
+        if mark:
+            hit[i] = 1
+        _add_i(i, r, force, torque, fe, fd, td)
+        _add_wall(w, r, wall_f)
+        e += r[18]
+        es += r[22]
     return e, es
 
 
@@ -561,14 +721,17 @@ def _wall_rows_range(lo, hi, wi, ww, x, v, omega, radius, mass, material, wall_p
     for k in range(lo, hi):
         i = wi[k]
         w = ww[k]
-        if radius[i] - ((x[i, 0] - wall_p[w, 0]) * wall_n[w, 0]
-                        + (x[i, 1] - wall_p[w, 1]) * wall_n[w, 1]
-                        + (x[i, 2] - wall_p[w, 2]) * wall_n[w, 2]) <= 0.0:
+        delta = wall_delta(x, radius, i, wall_p, wall_n, w)
+        if delta <= 0.0:
             _release(k, hist, slip, etan)
             out[k, 18] = 0.0
             continue
-        _wall_one(k, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
-                  wall_mat, table, hist, slip, etan, dt, out[k])
+        kin = _kin_wall(x, v, omega, radius, mass, i, wall_n, wall_u, w, delta)
+        sx, sy, sz, sl = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], wall_mat[w]), sx, sy, sz, sl,
+                     omega[i, 0], omega[i, 1], omega[i, 2], dt)
+        _put_history(k, r, hist, slip, etan)
+        _put_row(out, k, r)
 
 
 WALL_CHUNK = 256
@@ -594,18 +757,18 @@ def _wall_scatter(wi, ww, out, force, torque, fe, fd, td, wall_f, hit):
     additions of `_wall_all`, so the same bits)."""
     e = 0.0
     es = 0.0
+    mark = hit.shape[0] > 0
     for k in range(wi.shape[0]):
-        row = out[k]
-        if row[18] == 0.0:
+        if out[k, 18] == 0.0:
             continue
-        _scatter_row(wi[k], -1, row, force, torque, fe, fd, td, hit)
-        w = ww[k]
-        for c in range(3):
-            wall_f[w, c] += row[c]
-            wall_f[w, 3 + c] += row[19 + c]
-            wall_f[w, 6 + c] += row[9 + c]
-        e += row[18]
-        es += row[22]
+        i = wi[k]
+        r = _row(out, k)
+        if mark:
+            hit[i] = 1
+        _add_i(i, r, force, torque, fe, fd, td)
+        _add_wall(ww[k], r, wall_f)
+        e += r[18]
+        es += r[22]
     return e, es
 
 
@@ -628,5 +791,5 @@ def wall_forces(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wal
                    wall_mat, table, hist, slip, etan, dt, out)
         return _wall_scatter(wi, ww, out, force, torque, fe, fd, td, wall_f, hit)
     return _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
-                     wall_mat, table, hist, slip, etan, dt, out, force, torque, fe, fd, td,
-                     wall_f, hit)
+                     wall_mat, table, hist, slip, etan, dt, force, torque, fe, fd, td, wall_f,
+                     hit)

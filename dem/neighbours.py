@@ -345,13 +345,9 @@ def _max_disp2(x, x0):
 
 
 def _max_wall_disp(wp, wp0) -> float:
-    """Largest displacement [m] of a wall point since the build (plain Python: a handful
-    of walls, cheaper than numpy's per-call overhead). Same value as the numpy form."""
-    d2 = 0.0
-    for a, b in zip(wp.tolist(), wp0.tolist(), strict=True):
-        q = (a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2
-        d2 = max(d2, q)
-    return math.sqrt(d2)
+    """Largest displacement [m] of a wall point since the build: `_max_disp2` (0.4 us a
+    call against 4 us for a Python loop over five walls' ``tolist``, once per step)."""
+    return math.sqrt(_max_disp2(wp, wp0))
 
 
 class NeighbourList:

@@ -828,7 +828,8 @@ class DistributedSimulation:
                     dissipated_damping=t["dissipated"] - t["friction"],
                     dissipated_friction=t["friction"], work_gravity=t["gravity"],
                     work_walls=t["walls"], work_ghosts=t["ghosts"], work_cell=t["cell"],
-                    shadow=t["shadow"], initial=self._e0,
+                    # external forces (Simulation.set_external_force) are not distributed yet
+                    work_external=0.0, shadow=t["shadow"], initial=self._e0,
                     balance=stored - work - (self._e0 - self._shadow0))
 
     def gather(self, root: int = 0) -> dict | None:

@@ -16,25 +16,34 @@ from numba import njit
 from dem.contact import P_BETA, P_CLIP, P_ESTAR, P_GSTAR, P_MUD, P_MUS
 from dem.contact.kinematics import coulomb_tangential
 
-__all__ = ["hertz_mindlin_force"]
+__all__ = ["hertz_mindlin_force", "hertz_mindlin_law"]
 
 _C = 2.0 * math.sqrt(5.0 / 6.0)
 
 
 @njit(cache=True, inline="always")
-def hertz_mindlin_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
-    """Common law signature, see `dem.contact.linear.linear_force`."""
-    es = prm[P_ESTAR]
+def hertz_mindlin_law(estar, gstar, beta, mus, mud, clip, delta, reff, meff, vn, vtx, vty,
+                      vtz, sx, sy, sz, slip, dt):
+    """The law on scalar parameters (E*, G* [Pa], beta(e), static and dynamic friction, clip
+    flag), as `dem.contact.linear.linear_law`."""
     a = math.sqrt(reff * delta)
-    b = abs(prm[P_BETA])
-    fel = 4.0 / 3.0 * es * a * delta
-    fn = fel + _C * b * math.sqrt(2.0 * es * a * meff) * vn
-    if prm[P_CLIP] != 0.0 and fn < 0.0:
+    b = abs(beta)
+    fel = 4.0 / 3.0 * estar * a * delta
+    fn = fel + _C * b * math.sqrt(2.0 * estar * a * meff) * vn
+    if clip != 0.0 and fn < 0.0:
         fn = 0.0
-    kt = 8.0 * prm[P_GSTAR] * a
+    kt = 8.0 * gstar * a
     gt = _C * b * math.sqrt(kt * meff)
     ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric = coulomb_tangential(
-        kt, gt, prm[P_MUS], prm[P_MUD], fn, vtx, vty, vtz, sx, sy, sz, slip, dt)
+        kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt)
     e_n = 0.4 * fel * delta
     return (fn, fn - fel, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_n, e_pre, e_t,
             p_fric)
+
+
+@njit(cache=True, inline="always")
+def hertz_mindlin_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
+    """Common law signature, see `dem.contact.linear.linear_force`."""
+    return hertz_mindlin_law(prm[P_ESTAR], prm[P_GSTAR], prm[P_BETA], prm[P_MUS], prm[P_MUD],
+                             prm[P_CLIP], delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz,
+                             slip, dt)

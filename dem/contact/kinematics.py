@@ -14,7 +14,8 @@ import math
 
 from numba import njit
 
-__all__ = ["coulomb_tangential", "pair_kinematics", "periodic_pair_kinematics", "project_history",
+__all__ = ["contact_kinematics", "coulomb_tangential", "pair_kinematics",
+           "periodic_pair_kinematics", "project_history", "wall_contact_kinematics", "wall_delta",
            "wall_kinematics"]
 
 
@@ -29,6 +30,29 @@ def _relative(nx, ny, nz, vix, viy, viz, vjx, vjy, vjz, wx, wy, wz):
 
 
 @njit(cache=True, inline="always")
+def contact_kinematics(dx, dy, dz, d, delta, ri, rj, mi, mj, vix, viy, viz, vjx, vjy, vjz,
+                       oix, oiy, oiz, ojx, ojy, ojz):
+    """Kinematics of a touching pair (delta > 0) from scalars only: branch d = (dx, dy, dz)
+    from i to j [m], |d|, overlap, radii, masses, velocities v_i, v_j (with any image
+    velocity) and spins omega_i, omega_j. Same return layout as `pair_kinematics` (zero
+    but for delta when d = 0: coincident centres have no normal). Scalars, not arrays: an
+    array passed into an inlined helper that branches costs numba an atomic reference
+    count per call, which dominated the dense pair loops."""
+    if d == 0.0:
+        return 0.0, 0.0, 0.0, delta, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    nx, ny, nz = dx / d, dy / d, dz / d
+    ai = ri - 0.5 * delta
+    aj = rj - 0.5 * delta
+    wx = ai * oix + aj * ojx
+    wy = ai * oiy + aj * ojy
+    wz = ai * oiz + aj * ojz
+    vn, vtx, vty, vtz = _relative(nx, ny, nz, vix, viy, viz, vjx, vjy, vjz, wx, wy, wz)
+    reff = ri * rj / (ri + rj)
+    meff = mi * mj / (mi + mj)
+    return nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj
+
+
+@njit(cache=True, inline="always")
 def _branch_kinematics(v, omega, radius, mass, i, j, dx, dy, dz, ux, uy, uz):
     """Kinematics of pair (i, j) with branch vector d = (dx, dy, dz) from i to j [m] and an
     extra velocity u [m/s] of j's image relative to j (periodic cells; else 0)."""
@@ -36,19 +60,12 @@ def _branch_kinematics(v, omega, radius, mass, i, j, dx, dy, dz, ux, uy, uz):
     ri = radius[i]
     rj = radius[j]
     delta = ri + rj - d
-    if delta <= 0.0 or d == 0.0:
+    if delta <= 0.0:
         return 0.0, 0.0, 0.0, delta, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    nx, ny, nz = dx / d, dy / d, dz / d
-    ai = ri - 0.5 * delta
-    aj = rj - 0.5 * delta
-    wx = ai * omega[i, 0] + aj * omega[j, 0]
-    wy = ai * omega[i, 1] + aj * omega[j, 1]
-    wz = ai * omega[i, 2] + aj * omega[j, 2]
-    vn, vtx, vty, vtz = _relative(nx, ny, nz, v[i, 0], v[i, 1], v[i, 2],
-                                  v[j, 0] + ux, v[j, 1] + uy, v[j, 2] + uz, wx, wy, wz)
-    reff = ri * rj / (ri + rj)
-    meff = mass[i] * mass[j] / (mass[i] + mass[j])
-    return nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj
+    return contact_kinematics(dx, dy, dz, d, delta, ri, rj, mass[i], mass[j], v[i, 0],
+                              v[i, 1], v[i, 2], v[j, 0] + ux, v[j, 1] + uy, v[j, 2] + uz,
+                              omega[i, 0], omega[i, 1], omega[i, 2], omega[j, 0],
+                              omega[j, 1], omega[j, 2])
 
 
 @njit(cache=True, inline="always")
@@ -77,25 +94,40 @@ def periodic_pair_kinematics(x, v, omega, radius, mass, i, j, h, lg, ix, iy, iz)
 
 
 @njit(cache=True, inline="always")
+def wall_contact_kinematics(delta, ri, mi, wx, wy, wz, vix, viy, viz, ux, uy, uz, oix, oiy,
+                            oiz):
+    """Kinematics of particle i (radius, mass, velocity, spin) touching (delta > 0) a wall
+    with inward unit normal w moving at u [m/s], from scalars only (see
+    `contact_kinematics`). Same return layout as `wall_kinematics`."""
+    nx, ny, nz = -wx, -wy, -wz
+    ai = ri - 0.5 * delta
+    vn, vtx, vty, vtz = _relative(nx, ny, nz, vix, viy, viz, ux, uy, uz, ai * oix, ai * oiy,
+                                  ai * oiz)
+    return nx, ny, nz, delta, ri, mi, vn, vtx, vty, vtz, ai, 0.0
+
+
+@njit(cache=True, inline="always")
+def wall_delta(x, radius, i, wall_p, wall_n, w):
+    """Overlap r_i - distance of particle i with plane w [m] (> 0 touching)."""
+    return radius[i] - ((x[i, 0] - wall_p[w, 0]) * wall_n[w, 0]
+                        + (x[i, 1] - wall_p[w, 1]) * wall_n[w, 1]
+                        + (x[i, 2] - wall_p[w, 2]) * wall_n[w, 2])
+
+
+@njit(cache=True, inline="always")
 def wall_kinematics(x, v, omega, radius, mass, i, wall_p, wall_n, wall_u, w):
     """Kinematics of particle i against plane w through wall_p[w] (3,) with unit normal
     wall_n[w] pointing into the domain, moving with velocity wall_u[w] [m/s]. Wall =
     infinite mass and radius: reff = r_i, meff = m_i (LIGGGHTS/LAMMPS). Same return layout
     as `pair_kinematics` (arm_j = 0). Row indices, not row slices, are passed: slices would
     cost reference counting per call."""
-    wx, wy, wz = wall_n[w, 0], wall_n[w, 1], wall_n[w, 2]
-    dist = ((x[i, 0] - wall_p[w, 0]) * wx + (x[i, 1] - wall_p[w, 1]) * wy
-            + (x[i, 2] - wall_p[w, 2]) * wz)
-    ri = radius[i]
-    delta = ri - dist
+    delta = wall_delta(x, radius, i, wall_p, wall_n, w)
     if delta <= 0.0:
         return 0.0, 0.0, 0.0, delta, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    nx, ny, nz = -wx, -wy, -wz
-    ai = ri - 0.5 * delta
-    vn, vtx, vty, vtz = _relative(nx, ny, nz, v[i, 0], v[i, 1], v[i, 2], wall_u[w, 0],
-                                  wall_u[w, 1], wall_u[w, 2], ai * omega[i, 0],
-                                  ai * omega[i, 1], ai * omega[i, 2])
-    return nx, ny, nz, delta, ri, mass[i], vn, vtx, vty, vtz, ai, 0.0
+    return wall_contact_kinematics(delta, radius[i], mass[i], wall_n[w, 0], wall_n[w, 1],
+                                   wall_n[w, 2], v[i, 0], v[i, 1], v[i, 2], wall_u[w, 0],
+                                   wall_u[w, 1], wall_u[w, 2], omega[i, 0], omega[i, 1],
+                                   omega[i, 2])
 
 
 @njit(cache=True, inline="always")

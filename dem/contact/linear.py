@@ -14,7 +14,27 @@ from numba import njit
 from dem.contact import P_BETA, P_CLIP, P_KN, P_KT, P_MUD, P_MUS
 from dem.contact.kinematics import coulomb_tangential
 
-__all__ = ["linear_force"]
+__all__ = ["linear_force", "linear_law"]
+
+
+@njit(cache=True, inline="always")
+def linear_law(kn, kt, beta, mus, mud, clip, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz,
+               slip, dt):
+    """The law on scalar parameters (kn, kt [N/m], beta(e), static and dynamic friction,
+    clip flag): what the pair loops call, so that no parameter-row view is made per contact
+    (a view costs numba reference counting, atomic, in the hot loop). Other arguments and
+    returns as `linear_force`."""
+    b = abs(beta)
+    fel = kn * delta
+    fn = fel + 2.0 * b * math.sqrt(kn * meff) * vn
+    if clip != 0.0 and fn < 0.0:
+        fn = 0.0
+    gt = 2.0 * b * math.sqrt(kt * meff)
+    ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric = coulomb_tangential(
+        kt, gt, mus, mud, fn, vtx, vty, vtz, sx, sy, sz, slip, dt)
+    e_n = 0.5 * kn * delta * delta
+    return (fn, fn - fel, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_n, e_pre, e_t,
+            p_fric)
 
 
 @njit(cache=True, inline="always")
@@ -28,16 +48,5 @@ def linear_force(prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt
     when sliding), new spring [m], slip flag, normal elastic energy [J], tangential spring
     energy before/after the increment [J], sliding power [W]. The elastic energy is
     consistent with the non-dissipative forces, so an energy ledger closes."""
-    kn = prm[P_KN]
-    kt = prm[P_KT]
-    b = abs(prm[P_BETA])
-    fel = kn * delta
-    fn = fel + 2.0 * b * math.sqrt(kn * meff) * vn
-    if prm[P_CLIP] != 0.0 and fn < 0.0:
-        fn = 0.0
-    gt = 2.0 * b * math.sqrt(kt * meff)
-    ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_pre, e_t, p_fric = coulomb_tangential(
-        kt, gt, prm[P_MUS], prm[P_MUD], fn, vtx, vty, vtz, sx, sy, sz, slip, dt)
-    e_n = 0.5 * kn * delta * delta
-    return (fn, fn - fel, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, slip, e_n, e_pre, e_t,
-            p_fric)
+    return linear_law(prm[P_KN], prm[P_KT], prm[P_BETA], prm[P_MUS], prm[P_MUD], prm[P_CLIP],
+                      delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt)
