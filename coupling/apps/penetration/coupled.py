@@ -61,6 +61,7 @@ import dolfinx_solver  # noqa: F401
 
 import numpy as np
 
+from coupling.apps.penetration.chamber import apply_loads, consolidate, membrane_from_walls, surcharge
 from coupling.apps.penetration.parameters import VERTICAL, PenetrationParameters
 from coupling.apps.penetration.penetrators import cone_clump, cone_parts, cone_record, penetrator_clump, tip_height
 from coupling.interface import IQNILS, CouplingInterface, IQNOptions
@@ -158,6 +159,21 @@ def grain_lattice(prm, lo, hi, rng):
     return x, prm.radius * (1 - prm.jitter * rng.random(len(x)))
 
 
+def _settle(sim, prm, n: int, free_rows, width: float, log) -> list:
+    """Settle the grains before the push: under gravity for ``prm.settle_time`` (a free
+    surface), or consolidated under the chamber's vertical stress on the top row of
+    ``free_rows`` (among the first ``n`` rows, the grains) spanning ``width`` [m]
+    (:mod:`coupling.apps.penetration.chamber`).
+    Returns the external loads set (a list of (rows, forces))."""
+    if prm.vertical_stress == 0:
+        sim.step(int(np.ceil(prm.settle_time / sim.dt)))
+        return []
+    loads = [surcharge(sim.p.x[:n], free_rows, prm, width)]
+    apply_loads(sim, *loads)
+    consolidate(sim, prm, log)
+    return loads
+
+
 def _gravity(prm):
     g = np.zeros(3)
     g[VERTICAL[prm.dim]] = -prm.gravity
@@ -209,7 +225,10 @@ class DemPenetration:
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
         t0 = time.perf_counter()
-        self.sim.step(int(np.ceil(prm.settle_time / self.sim.dt)))
+        loads = _settle(self.sim, prm, n, np.arange(n), W, log)
+        if prm.lateral == "stress":   # BC1: the side walls become a membrane at their stress
+            loads.append(membrane_from_walls(self.sim, list(range(2 * (dim - 1)))))
+            apply_loads(self.sim, *loads)
         lower_penetrator(self.sim.p, n, self.pen0, r_pen, prm)
         log(f"full DEM: settled {n} grains in {time.perf_counter() - t0:.1f} s")
         self.history: list[dict] = []
@@ -298,7 +317,8 @@ class CoupledPenetration:
         saved = None
         if checkpoint is None:
             t0 = time.perf_counter()
-            self.sim.step(int(np.ceil(prm.settle_time / self.sim.dt)))
+            # the top row spans the window and its band (their ghosts carry their share)
+            _settle(self.sim, prm, n, np.flatnonzero(self.kinds == 0), 2 * (a + band), log)
             e = self.sim.energy()
             log(f"settled {n} grains in {time.perf_counter() - t0:.1f} s "
                 f"({self.sim.nsteps} steps of {self.sim.dt:.3g} s), kinetic energy "
@@ -314,6 +334,9 @@ class CoupledPenetration:
             # the continuum reaches the highest settled grain centre (every grain inside the mesh)
             self.surface = float(self.x_ref[:, ax].max() + 1e-3 * prm.radius)
         else:
+            if prm.vertical_stress > 0:
+                apply_loads(self.sim, surcharge(self.sim.p.x[:n], np.flatnonzero(self.kinds == 0), prm,
+                                                2 * (a + band)))
             saved = self._read_checkpoint(Path(checkpoint))
         # ---- continuum: chamber, stiffness from the settled contacts
         if dim == 2:
@@ -332,8 +355,11 @@ class CoupledPenetration:
         self.problem.fix("bottom", "u")
         self.problem.fix("bottom", "phi")
         if dim == 2:
-            self.problem.fix("left", "u_x")
-            self.problem.fix("right", "u_x")
+            # the increment from the consolidated state: a constant vertical stress on top
+            # (traction-free), the sides on rollers (BC3) or traction-free (BC1)
+            if prm.lateral == "rigid":
+                self.problem.fix("left", "u_x")
+                self.problem.fix("right", "u_x")
         else:
             self._geostatic_loads()
             self.problem.solve()   # the geostatic state w_geo, before any dof is prescribed

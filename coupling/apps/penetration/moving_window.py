@@ -325,6 +325,10 @@ class MovingWindowPenetration(CoupledPenetration):
         if prm.interface != "loose":
             raise ValueError(f"interface = {prm.interface!r}: a window that follows the penetrator "
                              "exchanges loosely (interface = 'loose') so far")
+        if prm.vertical_stress > 0 or prm.lateral != "rigid":
+            raise ValueError("a window that follows the penetrator is built for a free surface "
+                             "under gravity with rigid sides (vertical_stress = 0, lateral = 'rigid') so far: its "
+                             "new grains are not consolidated under a surcharge")
         self.moving = moving   # before the parent's set-up: it sizes the mesh (_refined_depth)
         super().__init__(prm, comm, log=log)
         self._interface_bc = self.problem.bcs[-1]   # appended by the parent's interface

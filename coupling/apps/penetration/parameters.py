@@ -69,9 +69,19 @@ class PenetrationParameters:
     # constants times continuum_stiffness (1: consistent with the grains)
     dt_factor: float = 1.0
     continuum_stiffness: float = 1.0
+    # calibration-chamber loading (2D, coupling.apps.penetration.chamber): a vertical stress
+    # [Pa] on the top grains (0: a free surface under gravity), consolidated by dynamic
+    # relaxation to consolidation_tol (unbalanced-force ratio); lateral = "rigid" keeps the
+    # sides from moving (BC3, zero lateral strain), "stress" holds the consolidated lateral
+    # stress constant (BC1, a flexible membrane)
+    vertical_stress: float = 0.0
+    lateral: str = "rigid"
+    consolidation_tol: float = 1e-3
+    consolidation_max_steps: int = 200_000
 
     def __post_init__(self):
         self._check_values()
+        self._check_loading()
         self._check_geometry()
 
     def _check_values(self):
@@ -122,6 +132,22 @@ class PenetrationParameters:
         if not (isinstance(self.interface_max_iterations, int) and self.interface_max_iterations >= 1):
             raise ValueError(f"interface_max_iterations must be an integer >= 1, "
                              f"got {self.interface_max_iterations!r}")
+
+    def _check_loading(self):
+        """The chamber's loading (coupling.apps.penetration.chamber)."""
+        if not (np.isfinite(self.vertical_stress) and self.vertical_stress >= 0):
+            raise ValueError(f"vertical_stress must be >= 0 Pa, got {self.vertical_stress!r}")
+        if self.vertical_stress > 0 and self.dim != 2:
+            raise ValueError("vertical_stress > 0 needs dim = 2 (the 3D chamber is loaded by "
+                             "gravity and its geostatic side traction only)")
+        if self.lateral not in ("rigid", "stress"):
+            raise ValueError(f"lateral must be 'rigid' (BC3) or 'stress' (BC1), got {self.lateral!r}")
+        if self.lateral == "stress" and self.dim != 2:
+            raise ValueError("lateral = 'stress' needs dim = 2")
+        if not 0 < self.consolidation_tol < 1:
+            raise ValueError(f"consolidation_tol must lie in (0, 1), got {self.consolidation_tol!r}")
+        if self.consolidation_max_steps < 1:
+            raise ValueError(f"consolidation_max_steps must be >= 1, got {self.consolidation_max_steps!r}")
 
     def _check_geometry(self):
         """The sizes against each other: mesh, window, cone, chamber."""

@@ -20,12 +20,20 @@ __all__ = ["PenetrationScene"]
 @dataclass(frozen=True)
 class Chamber:
     """Continuum chamber [m] (width: the diameter of the 3D cylinder) and its element sizes
-    (fine at the window, coarse far)."""
+    (fine at the window, coarse far). 2D calibration-chamber loading
+    (:mod:`coupling.apps.penetration.chamber`): ``vertical_stress`` [Pa] on the top grains
+    (0: a free surface), consolidated to an unbalanced-force ratio ``consolidation_tol``;
+    ``lateral`` = "rigid" (BC3, zero lateral strain) or "stress" (BC1, constant lateral
+    stress)."""
 
     width: float = parameter(P, "chamber_width")
     depth: float = parameter(P, "chamber_depth")
     element_size_window: float = parameter(P, "element_size_window")
     element_size_far: float = parameter(P, "element_size_far")
+    vertical_stress: float = parameter(P, "vertical_stress")
+    lateral: str = parameter(P, "lateral")
+    consolidation_tol: float = parameter(P, "consolidation_tol")
+    consolidation_max_steps: int = parameter(P, "consolidation_max_steps")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,266 @@
+"""The virtual calibration chamber (2D): coupled cone penetration against full DEM of the
+whole chamber, error against run time, under a vertical stress and the chambers' standard
+boundary conditions.
+
+Chamber (plane strain, per unit thickness): width ``--width-ratio`` x the cone diameter
+(20: physical chambers are 17-50 cone diameters across), cone diameter ``--cone-grains`` x
+the mean grain diameter (6), a 60 degree cone pushed ``--push`` cone diameters (3) at
+``--velocity``; the grains are linear frictional disks (kn 5e7 N/m per m: overlaps of
+0.2 % of a diameter at 100 kPa) consolidated under a vertical stress ``--stress`` on the
+top row (:mod:`coupling.apps.penetration.chamber`), sides rigid, then pushed with
+
+- BC3: constant vertical stress, zero lateral strain (rigid sides), and
+- BC1: constant vertical and lateral stress (the side walls replaced by the forces they
+  carried after consolidation: a flexible membrane).
+
+Reference: full DEM of the whole chamber, ``--seeds`` packings (lattice jitter and radii
+drawn per seed). Coupled: the same chamber with DE windows of half width ``--windows`` [m]
+(the rest a micropolar continuum carrying the increment from the consolidated state: top
+traction-free, sides on rollers (BC3) or traction-free (BC1)), the same packings' seeds.
+Every case runs in its own process (``--worker``), so its wall times (set-up: building and
+consolidating; push) and its peak memory (``ru_maxrss``) are its own.
+
+Per case: q_c(depth) and f_s(depth) (ISO 22476-1 sleeve, :func:`coupling.apps.penetration.
+penetrators.cone_record`), smoothed over ``--smooth``; the error of the seed-averaged q_c
+against the seed-averaged full DEM (relative RMS over depth once the cone is embedded, and
+the relative difference of the mean over the steady part: the last half of the push); the
+reference's own scatter (one packing against the average, and the standard error of the
+average). Writes ``calibration_chamber.json`` and ``calibration_chamber.png`` (q_c
+profiles, error against run time with the reference's scatter as a band) to ``--results``.
+
+Run: ``python benchmarks/calibration_chamber.py`` (about an hour on 2 idle cores, one core
+used at a time); ``GRANFE_SHORT=1`` a few-minute version on a smaller chamber.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SHORT = os.environ.get("GRANFE_SHORT") == "1"
+parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+parser.add_argument("--results", type=Path, default=Path("benchmarks/results"))
+parser.add_argument("--work", type=Path, default=Path("output/calibration_chamber"))
+parser.add_argument("--grain-radius", type=float, default=1.5e-3, help="mean grain radius [m]")
+parser.add_argument("--cone-grains", type=float, default=6.0, help="cone diameter / grain diameter")
+parser.add_argument("--width-ratio", type=float, default=8.0 if SHORT else 20.0,
+                    help="chamber width / cone diameter")
+parser.add_argument("--depth-ratio", type=float, default=0.8, help="chamber depth / chamber width")
+parser.add_argument("--push", type=float, default=1.5 if SHORT else 3.0, help="push [cone diameters]")
+parser.add_argument("--stress", type=float, default=1e5, help="vertical stress on top [Pa]")
+parser.add_argument("--velocity", type=float, default=1.0, help="push velocity [m/s]")
+parser.add_argument("--windows", type=float, nargs="+", default=[0.03] if SHORT else [0.03, 0.045],
+                    help="DE window half widths [m]")
+parser.add_argument("--bcs", nargs="+", default=["BC3", "BC1"] if not SHORT else ["BC3"])
+parser.add_argument("--seeds", type=int, default=2 if SHORT else 3)
+parser.add_argument("--smooth", type=float, default=0.006, help="depth window of the q_c filter [m]")
+parser.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
+args = parser.parse_args()
+
+LATERAL = {"BC3": "rigid", "BC1": "stress"}
+
+
+def parameters(bc: str, seed: int, window: float | None) -> dict:
+    """The PenetrationParameters of one case (window None: the full DEM's, whose window
+    fields only size its unused continuum checks)."""
+    r = args.grain_radius
+    cone_radius = args.cone_grains * r
+    width = args.width_ratio * 2 * cone_radius
+    depth = args.push * 2 * cone_radius
+    window_depth = depth + 2 * cone_radius + 12 * r
+    return dict(chamber_width=width, chamber_depth=args.depth_ratio * width, radius=r, cone_radius=cone_radius,
+                kn=5e7, velocity=args.velocity, depth=depth, dt_factor=3.0, vertical_stress=args.stress,
+                lateral=LATERAL[bc], consolidation_tol=1e-2, seed=seed, substeps=50,
+                window_half_width=window or 0.03, window_depth=window_depth,
+                element_size_window=2.5 * 2 * r, element_size_far=width / 8)
+
+
+def worker(path: Path) -> None:
+    """One case, from the JSON at ``path``; writes its record beside it."""
+    import dolfinx_solver  # noqa: F401
+    from mpi4py import MPI
+
+    from coupling.apps.penetration.coupled import CoupledPenetration, DemPenetration, PenetrationParameters
+
+    case = json.loads(path.read_text())
+    prm = PenetrationParameters(**case["parameters"])
+    t0 = time.perf_counter()
+    if case["window"] is None:
+        model = DemPenetration(prm, log=lambda m: None)
+    else:
+        model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
+    t1 = time.perf_counter()
+    history = model.run()
+    t2 = time.perf_counter()
+    out = {"grains": int(model.n_grains), "setup_s": t1 - t0, "push_s": t2 - t1,
+           "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+           "dem_steps": int(model.sim.nsteps), "dt": float(model.sim.dt),
+           "depth": [h["depth"] for h in history], "q_c": [h["q_c"] for h in history],
+           "f_s": [h["f_s"] for h in history]}
+    if case["window"] is not None:
+        V = model.problem.V
+        out["dofs"] = int(V.dofmap.index_map.size_global * V.dofmap.index_map_bs)
+        out["split_s"] = {k: float(np.sum([t.get(k, 0.0) for t in model.step_timings]))
+                          for k in model.step_timings[0]}
+    path.with_suffix(".out.json").write_text(json.dumps(out))
+
+
+def run_case(bc: str, seed: int, window: float | None) -> dict:
+    name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm'}_s{seed}"
+    path = args.work / f"{name}.json"
+    path.write_text(json.dumps({"parameters": parameters(bc, seed, window), "window": window}))
+    proc = subprocess.run([sys.executable, __file__, "--worker", str(path)], capture_output=True, text=True,
+                          env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
+    if proc.returncode:
+        raise RuntimeError(f"case {name} failed:\n{proc.stderr[-3000:]}")
+    out = json.loads(path.with_suffix(".out.json").read_text())
+    print(f"{name}: {out['grains']} grains, set-up {out['setup_s']:.1f} s, push {out['push_s']:.1f} s, "
+          f"peak {out['peak_memory_mb']:.0f} MB, mean q_c (last half) "
+          f"{np.mean(out['q_c'][len(out['q_c']) // 2:]) / 1e3:.1f} kPa", flush=True)
+    return out
+
+
+def smoothed(run: dict, key: str, grid: np.ndarray) -> np.ndarray:
+    from coupling.apps.penetration.penetrators import filtered
+
+    hist = [{"depth": d, key: v} for d, v in zip(run["depth"], run[key], strict=True)]
+    return np.interp(grid, run["depth"], filtered(hist, key, args.smooth))
+
+
+def compare(bc: str) -> dict:
+    seeds = list(range(1, args.seeds + 1))
+    full = [run_case(bc, s, None) for s in seeds]
+    grid = np.array(full[0]["depth"])
+    prm = parameters(bc, 1, None)
+    # compare once the cone tip is a third of its height into the grains
+    embedded = grid > prm["cone_radius"] / np.tan(np.radians(30.0)) / 3
+    tail = grid >= grid[-1] / 2
+    q_full = np.array([smoothed(r, "q_c", grid) for r in full])
+    q_ref = q_full.mean(axis=0)
+    scale = np.sqrt(np.mean(q_ref[embedded] ** 2))
+
+    def rms(q):
+        return float(np.sqrt(np.mean((q[embedded] - q_ref[embedded]) ** 2)) / scale)
+
+    def tail_mean(runs):
+        return float(np.mean([np.mean(np.interp(grid, r["depth"], r["q_c"])[tail]) for r in runs]))
+
+    ref_tail = tail_mean(full)
+    reference = {
+        "grains": full[0]["grains"], "setup_s": [r["setup_s"] for r in full], "push_s": [r["push_s"] for r in full],
+        "total_s_mean": float(np.mean([r["setup_s"] + r["push_s"] for r in full])),
+        "push_s_mean": float(np.mean([r["push_s"] for r in full])),
+        "peak_memory_mb": max(r["peak_memory_mb"] for r in full),
+        "q_c_mean": q_ref.tolist(), "q_c_std": q_full.std(axis=0).tolist(),
+        "f_s_mean": np.mean([smoothed(r, "f_s", grid) for r in full], axis=0).tolist(),
+        "q_c_steady_mean": ref_tail,
+        "one_packing_rms_vs_average": float(np.mean([rms(q) for q in q_full])),
+        "one_packing_steady_vs_average": float(np.mean([abs(tail_mean([r]) - ref_tail) / abs(ref_tail)
+                                                         for r in full])),
+        "standard_error_of_average": float(np.sqrt(np.mean(q_full[:, embedded].var(axis=0, ddof=1))
+                                                   / len(seeds)) / scale),
+        "runs": full}
+    print(f"{bc} full DEM: {reference['grains']} grains, one packing against the average "
+          f"{reference['one_packing_rms_vs_average']:.1%} RMS, standard error of the average "
+          f"{reference['standard_error_of_average']:.1%}", flush=True)
+    cases = []
+    for window in args.windows:
+        runs = [run_case(bc, s, window) for s in seeds]
+        q = np.mean([smoothed(r, "q_c", grid) for r in runs], axis=0)
+        total = float(np.mean([r["setup_s"] + r["push_s"] for r in runs]))
+        push = float(np.mean([r["push_s"] for r in runs]))
+        case = {"window_half_width": window, "grains": runs[0]["grains"], "dofs": runs[0]["dofs"],
+                "setup_s": [r["setup_s"] for r in runs], "push_s": [r["push_s"] for r in runs],
+                "total_s_mean": total, "push_s_mean": push,
+                "peak_memory_mb": max(r["peak_memory_mb"] for r in runs),
+                "speedup_total": reference["total_s_mean"] / total,
+                "speedup_push": reference["push_s_mean"] / push,
+                "q_c_rms_error": rms(q),
+                "q_c_steady_error": abs(tail_mean(runs) - ref_tail) / abs(ref_tail),
+                "q_c_rms_error_per_packing": [rms(smoothed(r, "q_c", grid)) for r in runs],
+                "q_c_mean": q.tolist(),
+                "f_s_mean": np.mean([smoothed(r, "f_s", grid) for r in runs], axis=0).tolist(),
+                "split_s_mean": {k: float(np.mean([r["split_s"][k] for r in runs])) for k in runs[0]["split_s"]},
+                "runs": runs}
+        case["within_reference_scatter"] = case["q_c_rms_error"] <= reference["one_packing_rms_vs_average"]
+        cases.append(case)
+        print(f"{bc} window {window * 100:.1f} cm: {case['grains']} grains, {case['speedup_total']:.1f}x faster "
+              f"(push {case['speedup_push']:.1f}x), q_c RMS error {case['q_c_rms_error']:.1%} (reference scatter "
+              f"{reference['one_packing_rms_vs_average']:.1%}), steady mean {case['q_c_steady_error']:.1%}", flush=True)
+    return {"parameters": prm, "depth": grid.tolist(), "full_dem": reference, "coupled": cases}
+
+
+def plot(results: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bcs = list(results["cases"])
+    fig, axes = plt.subplots(1, len(bcs) + 1, figsize=(5.2 * (len(bcs) + 1), 4.8), squeeze=False)
+    axes = axes[0]
+    for ax, bc in zip(axes, bcs, strict=False):
+        r = results["cases"][bc]
+        d = np.array(r["depth"]) * 100
+        ref, std = np.array(r["full_dem"]["q_c_mean"]) / 1e3, np.array(r["full_dem"]["q_c_std"]) / 1e3
+        ax.fill_betweenx(d, ref - std, ref + std, color="0.85", label="full DEM, +-1 std over packings")
+        ax.plot(ref, d, "k", lw=2, label=f"full DEM ({r['full_dem']['grains']} grains)")
+        for c in r["coupled"]:
+            ax.plot(np.array(c["q_c_mean"]) / 1e3, d,
+                    label=f"coupled, window {c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
+        ax.invert_yaxis()
+        ax.set_xlabel(f"q_c, filtered over {args.smooth * 1000:.0f} mm [kPa]")
+        ax.set_ylabel("depth [cm]")
+        ax.set_title(f"{bc}, sigma_v = {args.stress / 1e3:.0f} kPa, {len(r['full_dem']['runs'])} packings")
+        ax.legend(fontsize=7)
+    ax = axes[-1]
+    for k, bc in enumerate(bcs):
+        r = results["cases"][bc]
+        ref = r["full_dem"]
+        color = f"C{k}"
+        ax.axhspan(0, ref["one_packing_rms_vs_average"], color=color, alpha=0.12,
+                   label=f"{bc}: one full-DEM packing vs average")
+        ax.plot([c["total_s_mean"] for c in r["coupled"]], [c["q_c_rms_error"] for c in r["coupled"]], "o-",
+                color=color, label=f"{bc}: coupled (seed-averaged)")
+        ax.axvline(ref["total_s_mean"], color=color, ls="--", label=f"{bc}: full DEM run time")
+    ax.set_xscale("log")
+    ax.set_xlabel("run time per packing [s] (set-up + push, one core)")
+    ax.set_ylabel("relative RMS error of q_c against the full-DEM average")
+    ax.legend(fontsize=7)
+    ax.set_title("error against run time")
+    fig.tight_layout()
+    fig.savefig(args.results / "calibration_chamber.png", dpi=120)
+
+
+def machine() -> dict:
+    model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                  if line.startswith("model name")), platform.processor())
+    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
+            "load_average_1min_at_end": os.getloadavg()[0]}
+
+
+if __name__ == "__main__":
+    if args.worker is not None:
+        worker(args.worker)
+        sys.exit(0)
+    args.work.mkdir(parents=True, exist_ok=True)
+    args.results.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    results = {"cases": {bc: compare(bc) for bc in args.bcs}}
+    results["inputs"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()} | {"short": SHORT}
+    results["machine"] = machine()
+    results["command"] = " ".join(sys.argv)
+    results["wall_time_s"] = time.perf_counter() - t0
+    name = "calibration_chamber_short" if SHORT else "calibration_chamber"
+    (args.results / f"{name}.json").write_text(json.dumps(results, indent=1, default=float))
+    plot(results)
+    print(f"wrote {args.results / name}.json")

@@ -1,0 +1,95 @@
+"""Calibration-chamber loading of the grains: a vertical stress on top, and the lateral
+boundary conditions of physical chambers (2D).
+
+A calibration chamber holds its sand under a vertical stress applied on top (a rubber
+membrane or a plate with a hole for the rod) and, on its sides, either a constant stress
+(BC1: a flexible membrane under fluid pressure) or zero lateral strain (BC3: a rigid wall);
+the sample is K0-consolidated first, then the boundary condition of the test is switched
+on. Here:
+
+- **surcharge**: the top row of grains (the lattice's highest row) carries the vertical
+  stress as constant forces ``sigma_v x (width / top grains)`` (`dem.Simulation.
+  set_external_force`), the grains above the cone too: a membrane the cone pierces (a
+  hole would leave its grains unloaded, squeezed up by the loaded ones around it);
+- **consolidation**: dynamic relaxation (`dem.relax`) to a stated unbalanced-force ratio,
+  with the sides rigid (the chamber's walls, or the window's held ghost band): K0;
+- **BC1**: the side walls are then withdrawn and each grain that touched one carries the
+  force the wall put on it at the end of consolidation, constant from then on (a
+  flexible membrane at the consolidated lateral stress); BC3 keeps the walls.
+
+The continuum side of a coupled chamber carries the increment from this state (see
+:mod:`coupling.apps.penetration.coupled`): its top is traction-free (the vertical stress
+stays constant), its sides on rollers (BC3) or traction-free (BC1).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from coupling.apps.penetration.parameters import VERTICAL
+
+__all__ = ["surcharge", "consolidate", "membrane_from_walls", "apply_loads"]
+
+
+def surcharge(x: np.ndarray, candidates: np.ndarray, prm, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and forces (k, 3) [N per m thickness] of the vertical stress on the top row of
+    the lattice ``x`` (n, 3) among the FREE rows ``candidates``: the grains within half a
+    radius of the highest centre; ``width`` [m] is the loaded
+    width the top row spans (the chamber's, or the window's with its band)."""
+    ax = VERTICAL[prm.dim]
+    top = float(x[:, ax].max())
+    rows = candidates[x[candidates, ax] > top - 0.5 * prm.radius]
+    n_row = int(np.sum(np.abs(x[:, ax] - top) < 0.5 * prm.radius))   # with the band's ghosts
+    f = np.zeros((len(rows), 3))
+    f[:, ax] = -prm.vertical_stress * width / max(n_row, 1)
+    return rows, f
+
+
+def consolidate(sim, prm, log=print) -> dict:
+    """Dynamic relaxation under the surcharge to ``prm.consolidation_tol`` (the walls or the
+    ghosts hold the sides and the bottom). Returns relax's record with the wall time."""
+    from dem import relax
+
+    t0 = time.perf_counter()
+    # damping near critical for the specimen's slowest mode (a quarter wave over its height,
+    # c = sqrt(stiffness / density)): the default 2 % a step overdamps it, and a creeping
+    # consolidation takes ten times the steps
+    ax = VERTICAL[prm.dim]
+    height = float(np.ptp(sim.p.x[sim.p.kind == 0, ax])) + 2 * prm.radius
+    wave = np.sqrt(prm.kn / prm.density) if prm.dim == 2 else np.sqrt(prm.youngs_modulus / prm.density)
+    damping = 2 * (np.pi * wave / (2 * height))
+    info = relax(sim, tol=prm.consolidation_tol, max_steps=prm.consolidation_max_steps,
+                 damping=damping)
+    info["wall_time"] = time.perf_counter() - t0
+    log(f"consolidated {int((sim.p.kind == 0).sum())} grains under {prm.vertical_stress / 1e3:.4g} kPa in "
+        f"{info['steps']} steps ({info['wall_time']:.1f} s), unbalanced force ratio {info['ratio']:.2g}")
+    return info
+
+
+def membrane_from_walls(sim, walls: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Withdraw the planar walls ``walls`` (moved far outward along their normals) and return
+    the rows and forces (k, 3) they put on the grains just before: a flexible membrane at
+    the same stress (BC1). The forces now in the arrays no longer hold the walls'."""
+    p = sim.p
+    before = p.force.copy()
+    span = float(np.ptp(p.x, axis=0).max()) + 1.0
+    for k in walls:
+        sim.walls.point[k] -= span * sim.walls.normal[k]
+    sim.compute_forces(update_history=False)
+    wall = before - p.force
+    rows = np.flatnonzero((np.abs(wall).sum(axis=1) > 0) & (p.kind == 0))
+    sim.compute_forces()   # the contact history without the walls
+    return rows, wall[rows]
+
+
+def apply_loads(sim, *loads) -> None:
+    """Set the sum of several (rows, forces) loads as the simulation's external forces (a
+    grain at a corner is in the top row and on the membrane)."""
+    rows = np.concatenate([r for r, _ in loads]) if loads else np.zeros(0, np.int64)
+    f = np.concatenate([f for _, f in loads]) if loads else np.zeros((0, 3))
+    uniq, inv = np.unique(rows, return_inverse=True)
+    total = np.zeros((len(uniq), 3))
+    np.add.at(total, inv, f)
+    sim.set_external_force(uniq, total)
