@@ -1,0 +1,67 @@
+"""Calibration-chamber loading (coupling.apps.penetration.chamber): the vertical stress on
+top reaches the base, BC1 replaces the side walls by the forces they carried, and the
+coupled chamber carries the increment with its sides on rollers (BC3) or free (BC1)."""
+
+import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
+
+import numpy as np
+import pytest
+
+from coupling.apps.penetration.coupled import CoupledPenetration, DemPenetration, PenetrationParameters
+
+# a chamber 30 grain diameters wide (about 550 disks), 50 kPa on top
+CHAMBER = dict(chamber_width=0.09, chamber_depth=0.05, radius=1.5e-3, cone_radius=0.006, kn=5e7,
+               velocity=1.0, depth=0.004, dt_factor=3.0, vertical_stress=5e4, consolidation_tol=1e-2,
+               window_half_width=0.024, window_depth=0.03, element_size_window=0.005, element_size_far=0.02,
+               substeps=50)
+
+
+def test_vertical_stress_reaches_the_base_and_bc1_keeps_the_lateral_one():
+    # consolidated closer to equilibrium than the default, for the balances below
+    prm = PenetrationParameters(**(CHAMBER | {"lateral": "stress", "consolidation_tol": 2e-3}))
+    model = DemPenetration(prm, log=lambda m: None)
+    sim, n = model.sim, model.n_grains
+    weight = float(sim.p.mass[:n].sum() * prm.gravity)
+    # the side walls are withdrawn; the membrane carries what they carried (their friction
+    # too), so the base, the surcharge, the membrane and the weight are in equilibrium
+    np.testing.assert_array_equal(sim.walls.force[:2], 0.0)
+    rows, f = sim.external_force()
+    base = -sim.walls.force[2, 1]
+    assert base == pytest.approx(weight - f[:, 1].sum(), rel=0.02)
+    assert base > 0.5 * prm.vertical_stress * prm.chamber_width
+    # the membrane pushes inward on each side, at a lateral stress of K0 x sigma_v
+    left, right = f[:, 0] > 0, f[:, 0] < 0
+    height = float(np.ptp(sim.p.x[:n, 1]))
+    k0 = 0.5 * (f[left, 0].sum() - f[right, 0].sum()) / height / prm.vertical_stress
+    # the base's friction takes the difference (horizontal equilibrium)
+    balance = f[left, 0].sum() + f[right, 0].sum() - sim.walls.force[2, 0]
+    assert abs(balance) < 0.02 * f[left, 0].sum()
+    assert 0.2 < k0 < 1.2
+    history = model.run()
+    assert np.isfinite([h["q_c"] for h in history]).all()
+
+
+def test_coupled_chamber_carries_the_increment():
+    bcs = {}
+    for lateral in ("rigid", "stress"):
+        prm = PenetrationParameters(**CHAMBER, lateral=lateral)
+        model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
+        rows, f = model.sim.external_force()
+        assert len(rows) > 0 and (f[:, 1] < 0).all()            # only the top row is loaded
+        assert (model.kinds[rows] == 0).all()                   # window grains, not ghosts
+        history = model.run(steps=4)
+        assert len(history) == 4 and np.isfinite([h["q_c"] for h in history]).all()
+        assert np.abs(model.problem.w.x.array).max() < prm.depth
+        bcs[lateral] = len(model.problem.bcs)
+    # BC3: the two rollers more than BC1 (the base is clamped in both)
+    assert bcs["rigid"] == bcs["stress"] + 2
+
+
+def test_chamber_loading_is_2d_and_named():
+    with pytest.raises(ValueError, match="vertical_stress > 0 needs dim = 2"):
+        PenetrationParameters(dim=3, vertical_stress=1e5)
+    with pytest.raises(ValueError, match="lateral must be 'rigid'"):
+        PenetrationParameters(lateral="membrane")
+    with pytest.raises(ValueError, match="vertical_stress must be >= 0"):
+        PenetrationParameters(vertical_stress=-1.0)
