@@ -97,7 +97,7 @@ def test_scene_keys_set_the_parameters_they_name():
     from coupling.scene import parameter_keys
 
     # study knobs of benchmarks/stability.py and run-internal settings have no scene key
-    unreachable = {PenetrationParameters: {"dim", "dt_factor", "continuum_stiffness"},
+    unreachable = {PenetrationParameters: {"dim", "continuum_stiffness"},
                    MovingWindowParameters: {"depth", "servo_cycles", "settle_hold", "relax_iterations",
                                             "overlap_tolerance", "max_moves", "seed"}}
     base = PenetrationScene()

@@ -279,6 +279,13 @@ def summarise_penetration(scene, ranks: int = 1) -> dict:
         r_min = np.minimum(r_min, 0.5 * prm.radius)
         probe = Particles.spheres(np.zeros((1, 3)), r_min, prm.density, dim=2)
         dt = DEFAULT_SAFETY["linear"] * critical_dt(probe, [contact_material(prm)])  # the DEM's default
+    dt *= prm.dt_factor
+    settle = prm.settle_time / dt
+    if prm.vertical_stress > 0:
+        # consolidation (coupling.apps.penetration.chamber): about 20 periods of the window's
+        # slowest mode, a quarter wave over its height (measured: 30k steps for a 10 cm window)
+        wave = np.sqrt(prm.kn / prm.density)
+        settle = 20 * 4 * (prm.window_depth + band) / wave / dt
     # the size field ramps from fine to coarse over about the window size again
     hw, hf = prm.element_size_window, prm.element_size_far
     if dim == 2:   # 0.87-0.91 of the gmsh meshes' nodes without the factor 1.1
@@ -298,7 +305,7 @@ def summarise_penetration(scene, ranks: int = 1) -> dict:
     depth = scene.penetrator.depth   # the whole push (more than prm.depth if the window follows)
     out = {"kind": "penetration", "dimension": dim, "grains_in_window_and_ghost_band": int(grains),
            "fe_dofs_estimate": int(dofs), "dem_time_step_estimate_s": float(dt),
-           "dem_steps_estimate": int((prm.settle_time + depth / prm.velocity) / dt),
+           "dem_steps_estimate": int(settle + depth / prm.velocity / dt),
            "fe_steps": int(np.ceil(depth / prm.velocity / (prm.substeps * dt))),
            "memory_estimate_MB_per_rank": memory_mb(1.25 * grains, dofs / ranks)}
     fe_heavy = 0.0025 * dofs / ranks > 0.024 * 1.25 * grains

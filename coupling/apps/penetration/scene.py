@@ -83,9 +83,11 @@ class Exchange:
     """DE sub-steps per FE step; the exchange (``interface``): ``loose``, one pass per FE step
     with the prescribed FE values relaxed by ``relaxation``, or ``iqn-ils``, iterated within
     the FE step to ``interface_tol`` (interface quasi-Newton; ``relaxation`` is its first
-    step)."""
+    step). ``dt_factor``: the DEM step over the law's default (0.05 of the critical step of
+    the linear law, 0.2 Rayleigh for Hertz-Mindlin; up to 20 / 5)."""
 
     substeps: int = parameter(P, "substeps")
+    dt_factor: float = parameter(P, "dt_factor")
     relaxation: float = parameter(P, "relaxation")
     interface: str = parameter(P, "interface")
     interface_tol: float = parameter(P, "interface_tol")
