@@ -23,6 +23,13 @@ multiplier), and the yield indicator of the last committed step.
 
 Couple stress elasticity in the plastic model is gamma only (``alpha = beta = 0``): the
 radial return needs the curvature energy to be ``gamma/2 kap:kap``.
+
+Initial stress: a uniform ``sigma_0 = diag(initial_stress)`` (3 x 3, tension positive) in
+equilibrium with loads that are not modelled (a chamber consolidated under its boundary
+stresses, the window's grains carrying the same). The yield function sees the total stress
+``sigma_0 + sigma(eps - eps_p)``; the equations carry the increment (the internal work is
+that of ``sigma - sigma_0``), so the boundary conditions are those of the increment, as for
+the elastic continuum around a consolidated DE window.
 """
 
 from __future__ import annotations
@@ -86,6 +93,9 @@ class DruckerPragerMaterial:
             :func:`drucker_prager_constants`.
         residual_cohesion: c_r [Pa] in [0, cohesion], where softening stops (the cone of
             friction phi and cohesion c_r); unused when hardening >= 0.
+        initial_stress: (sigma_xx, sigma_yy, sigma_zz) [Pa] of a uniform initial stress
+            (tension positive; in plane strain sigma_zz is the out-of-plane one), see the
+            module docstring; it must lie inside the cone.
     """
 
     elastic: MicropolarMaterial
@@ -95,6 +105,7 @@ class DruckerPragerMaterial:
     hardening: float = 0.0
     match: str = "plane_strain"
     residual_cohesion: float = 0.0
+    initial_stress: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
         if not isinstance(self.elastic, MicropolarMaterial):
@@ -125,6 +136,16 @@ class DruckerPragerMaterial:
         G = e.mu + e.kappa / 2
         if self.hardening <= -G:
             raise ValueError(f"DruckerPragerMaterial.hardening must be > -G = {-G!r} Pa")
+        s0 = tuple(self.initial_stress)
+        if len(s0) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in s0):
+            raise ValueError("DruckerPragerMaterial.initial_stress must be three finite numbers "
+                             f"(sigma_xx, sigma_yy, sigma_zz) [Pa], got {self.initial_stress!r}")
+        p0 = sum(s0) / 3
+        tau0 = math.sqrt(0.5 * sum((v - p0) ** 2 for v in s0))
+        if tau0 + A * p0 - k0 > 1e-12 * max(abs(k0), abs(A * p0), 1.0):
+            raise ValueError(f"DruckerPragerMaterial.initial_stress {s0} lies outside the yield "
+                             f"cone (sqrt(J2) + A p - k = {tau0 + A * p0 - k0:.4g} Pa > 0): more "
+                             "friction or cohesion, or a less deviatoric initial stress")
 
     @property
     def constants(self) -> tuple[float, float, float]:
@@ -177,7 +198,12 @@ class MicropolarDruckerPrager(Micropolar):
         values = super().constant_values(material.elastic)
         A, B, k0 = material.constants
         values.update(A=A, B=B, k0=k0, H=material.hardening, k_r=material.residual_strength)
+        values.update({f"s0_{k}": float(v) for k, v in zip("xyz", material.initial_stress, strict=True)})
         return values
+
+    def _initial_stress(self):
+        c = self.constants
+        return ufl.diag(ufl.as_vector([c.s0_x, c.s0_y, c.s0_z]))
 
     def make_constants(self, domain):
         # the namespace of every constant (the micropolar dataclass holds the elastic ones only)
@@ -203,8 +229,9 @@ class MicropolarDruckerPrager(Micropolar):
         sym_e, skw_e = ufl.sym(eps_e), ufl.skew(eps_e)
         vol = ufl.tr(eps_e)
         kap_e = curvature(phi) - state["plastic_curvature"]
-        s_tr = 2 * G * ufl.dev(sym_e)
-        p_tr = K * vol
+        s0 = self._initial_stress()
+        s_tr = 2 * G * ufl.dev(sym_e) + ufl.dev(s0)
+        p_tr = K * vol + ufl.tr(s0) / 3
         m_tr = c.gamma * kap_e
         l2 = c.gamma / (2 * G)
         tau_tr = ufl.sqrt(0.5 * ufl.inner(s_tr, s_tr) + 0.5 * ufl.inner(m_tr, m_tr) / l2 + 1e-30)
@@ -246,12 +273,16 @@ class MicropolarDruckerPrager(Micropolar):
         return {k: r[k] for k in self.state_variables(ufl.shape(w[0])[0])}
 
     def stresses(self, w, state):
+        """The total stresses (with the initial stress)."""
         r = self._return(w, state)
         return {"sigma": r["sigma"], "couple_stress": r["m"]}
 
     def internal_work(self, w, dw, state):
+        """Work of the stress increment from the initial stress (module docstring)."""
         r = self._return(w, state)
-        return ufl.inner(r["sigma"], strain(*dw)) + ufl.inner(r["m"], curvature(dw[1]))
+        gdim = ufl.shape(w[0])[0]
+        sigma = r["sigma"] - _from3(self._initial_stress(), gdim)
+        return ufl.inner(sigma, strain(*dw)) + ufl.inner(r["m"], curvature(dw[1]))
 
     def stored_energy(self, w, state):
         """Elastic energy of the elastic strains (the stored part of the work)."""

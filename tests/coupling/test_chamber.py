@@ -65,3 +65,24 @@ def test_chamber_loading_is_2d_and_named():
         PenetrationParameters(lateral="membrane")
     with pytest.raises(ValueError, match="vertical_stress must be >= 0"):
         PenetrationParameters(vertical_stress=-1.0)
+
+
+def test_plastic_continuum_starts_from_the_window_stress_and_restarts(tmp_path):
+    """The Drucker-Prager continuum takes the consolidated window's mean stress as its initial
+    stress (compressive, vertical about the surcharge), pushes on, and a restart from a
+    checkpoint continues with the same plastic state."""
+    prm = PenetrationParameters(**CHAMBER, continuum="micropolar_drucker_prager", continuum_friction_deg=35.0)
+    comm = MPI.COMM_WORLD
+    model = CoupledPenetration(prm, comm, log=lambda m: None)
+    sxx, syy = model.initial_stress
+    assert -1.6 * prm.vertical_stress < syy < -0.6 * prm.vertical_stress
+    assert syy < sxx < 0
+    model.run(steps=2)
+    model.save_checkpoint(tmp_path / "ck")
+    ref = model.run(steps=2)
+    again = CoupledPenetration(prm, comm, log=lambda m: None, checkpoint=tmp_path / "ck")
+    assert again.initial_stress == model.initial_stress
+    got = again.run(steps=2)
+    assert [h["q_c"] for h in got] == [h["q_c"] for h in ref]
+    for name, f in model.problem.state.committed.items():
+        np.testing.assert_array_equal(f.x.array, again.problem.state.committed[name].x.array, err_msg=name)

@@ -220,3 +220,29 @@ def test_material_is_validated(kwargs, key):
         DruckerPragerMaterial(ELASTIC, **kwargs)
     with pytest.raises(ValueError, match="alpha and beta must be 0"):
         DruckerPragerMaterial(MicropolarMaterial(1.0, 1.0, 0.1, beta=0.1), 1.0, 20.0)
+
+
+def test_initial_stress_confines_like_a_traction():
+    """A uniform initial stress -sigma3 I with traction-free sides (the increment's boundary
+    conditions) reaches the same Mohr-Coulomb peak as the confining traction sigma3 does:
+    the yield function sees the total stress, the equations the increment."""
+    sigma3 = 100e3
+    mat = DruckerPragerMaterial(ELASTIC, C, 30.0, 10.0, match="triaxial_compression",
+                                initial_stress=(-sigma3, -sigma3, -sigma3))
+    p = ContinuumProblem(mesh.create_unit_cube(MPI.COMM_WORLD, 1, 1, 1), MicropolarDruckerPrager(mat),
+                         degree=(1, 1), prefix="tri_s0_")
+    for axis, name in enumerate(("u_x", "u_y", "u_z")):
+        p.fix(_at(axis, 0.0), name)
+    p.fix(lambda x: np.isclose(x[0], 0) | np.isclose(x[1], 0) | np.isclose(x[2], 0)
+          | np.isclose(x[2], 1), "phi")
+    top = p.fix(_at(2, 1.0), "u_z", 0.0)
+    p.solve()
+    np.testing.assert_allclose(p.w.x.array, 0.0, atol=1e-14)   # the initial state is in equilibrium
+    axial = []
+    for dz in (-5e-4, -1e-3, -2e-3, -4e-3, -8e-3, -0.015, -0.03):
+        top.value = dz
+        p.solve()
+        axial.append(sigma3 - p.reaction(_at(2, 1.0), "u_z"))
+    assert max(axial) == pytest.approx(mohr_coulomb_peak(sigma3, 30.0), rel=1e-9)
+    with pytest.raises(ValueError, match="initial_stress .* lies outside the yield cone"):
+        DruckerPragerMaterial(ELASTIC, 0.0, 30.0, initial_stress=(-1e5, -1e4, -1e4))

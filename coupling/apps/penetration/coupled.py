@@ -72,7 +72,8 @@ from dem.bonded import hexagonal_lattice, hexagonal_lattice_micropolar
 from dem.timestep import DEFAULT_SAFETY, rayleigh_dt
 from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
-from granfe.problem import MicropolarProblem
+from granfe.models.micropolar import Micropolar
+from granfe.problem import ContinuumProblem
 
 __all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record",
            "CouplingUnstable", "cone_clump", "penetrator_clump", "tip_height", "cone_parts"]
@@ -350,8 +351,8 @@ class CoupledPenetration:
         data.mesh.geometry.x[:, ax] += self.surface
         names = {k: tag for k, (gd, tag) in data.physical_groups.items() if gd == dim - 1}
         # "redundant": the same bits run to run on the same rank count (granfe.solvers.REDUNDANT)
-        self.problem = MicropolarProblem(data.mesh, self.material_fe, facet_tags=data.facet_tags,
-                                         tag_names=names, degree=(1, 1), prefix="cpt_", solver="redundant")
+        self.problem = ContinuumProblem(data.mesh, self._continuum_model(), facet_tags=data.facet_tags,
+                                        tag_names=names, degree=(1, 1), prefix="cpt_", solver="redundant")
         self.problem.fix("bottom", "u")
         self.problem.fix("bottom", "phi")
         if dim == 2:
@@ -383,6 +384,45 @@ class CoupledPenetration:
         self._g_now = None   # ghost motion of the current FE state, kept by each step for the next
 
     # ---- set-up -------------------------------------------------------------------------
+    def _continuum_model(self):
+        """The continuum model of ``prm.continuum`` with the settled packing's constants; the
+        Drucker-Prager one starts from the window's consolidated mean stress."""
+        prm = self.prm
+        if prm.continuum == "micropolar":
+            return Micropolar(self.material_fe)
+        from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
+
+        if getattr(self, "initial_stress", None) is None:
+            self.initial_stress = self._window_stress()
+        elastic = replace(self.material_fe, alpha=0.0, beta=0.0)
+        sxx, syy = self.initial_stress
+        mat = DruckerPragerMaterial(elastic, prm.continuum_cohesion, prm.continuum_friction_deg,
+                                    prm.continuum_dilatancy_deg, match="plane_strain",
+                                    initial_stress=(sxx, syy, sxx))
+        return MicropolarDruckerPrager(mat)
+
+    def _window_stress(self) -> tuple[float, float]:
+        """(sigma_xx, sigma_yy) [Pa, tension positive] of the free grains' mean (Love-Weber)
+        stress, over the contacts between free grains at least two diameters below the
+        surface and inside the window (the out-of-plane stress of disks is unknown: the
+        Drucker-Prager start takes sigma_zz = sigma_xx)."""
+        prm, sim, n = self.prm, self.sim, self.n_grains
+        pairs, f, b = sim.contact_forces(return_branch=True)
+        i, j = pairs[:, 0], pairs[:, 1]
+        x, d = sim.p.x, 2 * prm.radius
+        top = float(x[:n, 1].max())
+        inner = np.zeros(sim.p.n, bool)
+        inner[:n] = ((self.kinds == 0) & (np.abs(x[:n, 0]) < prm.window_half_width - d)
+                     & (x[:n, 1] < top - 2 * d) & (x[:n, 1] > top - prm.window_depth + d))
+        if (inner[i] & inner[j]).sum() < 20:
+            raise ValueError("the window holds fewer than 20 contacts between free grains away from "
+                             "its edges: too small to take the continuum's initial stress from")
+        # a contact with one end inside counts half (Love-Weber over the inner region)
+        weight = 0.5 * (inner[i].astype(float) + inner[j])
+        sigma = np.einsum("k,ka,kb->ab", weight, f, b)
+        area = 2 * (prm.window_half_width - d) * (prm.window_depth - 3 * d)
+        return float(sigma[0, 0] / area), float(sigma[1, 1] / area)
+
     def _continuum_material(self):
         """Micropolar constants and density of the settled packing (module docstring, 3.)."""
         if self.prm.dim == 3:
@@ -639,6 +679,7 @@ class CoupledPenetration:
             name = f"continuum_rank{comm.rank}_of{comm.size}.npz"
             np.savez(tmp / name, w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
                      a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem.last_good,
+                     **{f"qp.{k}": v for k, v in self.problem.state.state_dict().items()},
                      **{f"iqn.{k}": v for k, v in self.accelerator.state_dict().items()})
             if comm.rank != 0:
                 return [name]
@@ -647,6 +688,7 @@ class CoupledPenetration:
             state = {"step": step, "depth": self.depth, "t": st.t,
                      "ranks": comm.size, "surface": self.surface,
                      "material": asdict(self.material_fe), "packing": self.contact_stats,
+                     "initial_stress": getattr(self, "initial_stress", None),
                      "history": self.history}
             (tmp / "state.json").write_text(json.dumps(state, indent=1))
             return [name, "grains.npz", "state.json"]
@@ -685,6 +727,8 @@ class CoupledPenetration:
         self.x_ref, self.pen0 = grains["x_ref"], grains["pen0"]
         self.material_fe = material
         self.contact_stats = state["packing"]
+        s0 = state.get("initial_stress")
+        self.initial_stress = None if s0 is None else tuple(s0)
         self.surface = state["surface"]
         return {"state": state, "grains": grains, "fe": fe}
 
@@ -697,6 +741,8 @@ class CoupledPenetration:
                                  f"mesh {target.x.array.shape}: different parameters or mesh")
             target.x.array[:] = fe[name]
         self.problem.last_good[:] = fe["last_good"]
+        if self.problem.state:
+            self.problem.state.load_state({k[3:]: v for k, v in fe.items() if k.startswith("qp.")})
         if "iqn.step" in fe:
             self.accelerator.load_state({k[4:]: v for k, v in fe.items() if k.startswith("iqn.")})
         st.t = state["t"]

@@ -78,6 +78,13 @@ class PenetrationParameters:
     lateral: str = "rigid"
     consolidation_tol: float = 1e-3
     consolidation_max_steps: int = 200_000
+    # the continuum model (granfe.models): "micropolar" (elastic) or
+    # "micropolar_drucker_prager" (2D chambers under a vertical stress: its initial stress is
+    # the consolidated window's mean stress), with the cone matched in plane strain
+    continuum: str = "micropolar"
+    continuum_friction_deg: float = 30.0
+    continuum_dilatancy_deg: float = 0.0
+    continuum_cohesion: float = 0.0
 
     def __post_init__(self):
         self._check_values()
@@ -134,7 +141,21 @@ class PenetrationParameters:
                              f"got {self.interface_max_iterations!r}")
 
     def _check_loading(self):
-        """The chamber's loading (coupling.apps.penetration.chamber)."""
+        """The chamber's loading (coupling.apps.penetration.chamber) and the continuum model."""
+        if self.continuum not in ("micropolar", "micropolar_drucker_prager"):
+            raise ValueError(f"continuum must be 'micropolar' or 'micropolar_drucker_prager', "
+                             f"got {self.continuum!r}")
+        if self.continuum == "micropolar_drucker_prager" and not (self.dim == 2 and self.vertical_stress > 0):
+            raise ValueError("continuum = 'micropolar_drucker_prager' needs dim = 2 and vertical_stress "
+                             "> 0 (its yield function needs the total stress: a uniform initial stress, "
+                             "the consolidated chamber's; a free surface under gravity has none yet)")
+        if not (0 <= self.continuum_friction_deg < 90):
+            raise ValueError(f"continuum_friction_deg must lie in [0, 90), got {self.continuum_friction_deg!r}")
+        if not (0 <= self.continuum_dilatancy_deg <= self.continuum_friction_deg):
+            raise ValueError(f"continuum_dilatancy_deg must lie in [0, continuum_friction_deg], "
+                             f"got {self.continuum_dilatancy_deg!r}")
+        if not (np.isfinite(self.continuum_cohesion) and self.continuum_cohesion >= 0):
+            raise ValueError(f"continuum_cohesion must be >= 0 Pa, got {self.continuum_cohesion!r}")
         if not (np.isfinite(self.vertical_stress) and self.vertical_stress >= 0):
             raise ValueError(f"vertical_stress must be >= 0 Pa, got {self.vertical_stress!r}")
         if self.vertical_stress > 0 and self.dim != 2:

@@ -79,6 +79,19 @@ class Cone:
 
 
 @dataclass(frozen=True)
+class ContinuumModel:
+    """The continuum's model: ``micropolar`` (elastic, constants from the settled grains) or
+    ``micropolar_drucker_prager`` (those constants and a Drucker-Prager cone matched to
+    Mohr-Coulomb in plane strain: friction and dilatancy [deg], cohesion [Pa]; 2D chambers
+    under a vertical stress)."""
+
+    model: str = parameter(P, "continuum")
+    friction_deg: float = parameter(P, "continuum_friction_deg")
+    dilatancy_deg: float = parameter(P, "continuum_dilatancy_deg")
+    cohesion: float = parameter(P, "continuum_cohesion")
+
+
+@dataclass(frozen=True)
 class Exchange:
     """DE sub-steps per FE step; the exchange (``interface``): ``loose``, one pass per FE step
     with the prescribed FE values relaxed by ``relaxation``, or ``iqn-ils``, iterated within
@@ -138,6 +151,7 @@ class PenetrationScene(_Tables):
     grains: Grains = field(default_factory=Grains)
     window: PenetrationWindow = field(default_factory=PenetrationWindow)
     penetrator: Cone = field(default_factory=Cone)
+    continuum: ContinuumModel = field(default_factory=ContinuumModel)
     coupling: Exchange = field(default_factory=Exchange)
     output: PenetrationOutput = field(default_factory=PenetrationOutput)
     follow: Follow = field(default_factory=Follow)
