@@ -67,13 +67,20 @@ parser.add_argument("--interface", default="loose", choices=["loose", "iqn-ils"]
                     help="the coupled cases' exchange (coupling.interface)")
 parser.add_argument("--relaxation", type=float, default=0.1,
                     help="coupling.relaxation (0.3 diverged in a short chamber at 1.3 cone diameters)")
+parser.add_argument("--continuum", nargs="+", default=["micropolar"],
+                    choices=["micropolar", "micropolar_drucker_prager"],
+                    help="the coupled cases' continuum models (each with every window)")
+parser.add_argument("--friction-deg", type=float, default=30.0,
+                    help="the Drucker-Prager continuum's friction angle (plane-strain match)")
+parser.add_argument("--reuse", action="store_true",
+                    help="take a case's record from --work if it ran with the same parameters")
 parser.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
 args = parser.parse_args()
 
 LATERAL = {"BC3": "rigid", "BC1": "stress"}
 
 
-def parameters(bc: str, seed: int, window: float | None) -> dict:
+def parameters(bc: str, seed: int, window: float | None, continuum: str = "micropolar") -> dict:
     """The PenetrationParameters of one case (window None: the full DEM's, whose window
     fields only size its unused continuum checks)."""
     r = args.grain_radius
@@ -86,7 +93,9 @@ def parameters(bc: str, seed: int, window: float | None) -> dict:
                 lateral=LATERAL[bc], consolidation_tol=1e-2, seed=seed, substeps=50,
                 interface=args.interface, relaxation=args.relaxation,
                 window_half_width=window or 0.03, window_depth=window_depth,
-                element_size_window=2.5 * 2 * r, element_size_far=width / 8)
+                element_size_window=2.5 * 2 * r, element_size_far=width / 8) | (
+                    {} if continuum == "micropolar" else
+                    dict(continuum=continuum, continuum_friction_deg=args.friction_deg))
 
 
 def worker(path: Path) -> None:
@@ -136,10 +145,16 @@ def worker(path: Path) -> None:
     path.with_suffix(".out.json").write_text(json.dumps(out))
 
 
-def run_case(bc: str, seed: int, window: float | None) -> dict:
-    name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm'}_s{seed}"
+def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropolar") -> dict:
+    tag = "" if continuum == "micropolar" else "_dp"
+    name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm{tag}'}_s{seed}"
     path = args.work / f"{name}.json"
-    path.write_text(json.dumps({"parameters": parameters(bc, seed, window), "window": window}))
+    case = {"parameters": parameters(bc, seed, window, continuum), "window": window}
+    done = path.with_suffix(".out.json")
+    if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == case:
+        print(f"{name}: reused from {done}", flush=True)
+        return json.loads(done.read_text())
+    path.write_text(json.dumps(case))
     proc = subprocess.run([sys.executable, __file__, "--worker", str(path)], capture_output=True, text=True,
                           env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
     if proc.returncode:
@@ -195,12 +210,13 @@ def compare(bc: str) -> dict:
           f"{reference['one_packing_rms_vs_average']:.1%} RMS, standard error of the average "
           f"{reference['standard_error_of_average']:.1%}", flush=True)
     cases = []
-    for window in args.windows:
-        runs = [run_case(bc, s, window) for s in seeds]
+    for continuum, window in [(c, w) for c in args.continuum for w in args.windows]:
+        runs = [run_case(bc, s, window, continuum) for s in seeds]
         q = np.mean([smoothed(r, "q_c", grid) for r in runs], axis=0)
         total = float(np.mean([r["setup_s"] + r["push_s"] for r in runs]))
         push = float(np.mean([r["push_s"] for r in runs]))
-        case = {"window_half_width": window, "grains": runs[0]["grains"], "dofs": runs[0]["dofs"],
+        case = {"window_half_width": window, "continuum": continuum, "grains": runs[0]["grains"],
+                "dofs": runs[0]["dofs"],
                 "setup_s": [r["setup_s"] for r in runs], "push_s": [r["push_s"] for r in runs],
                 "total_s_mean": total, "push_s_mean": push,
                 "peak_memory_mb": max(r["peak_memory_mb"] for r in runs),
@@ -215,7 +231,8 @@ def compare(bc: str) -> dict:
                 "runs": runs}
         case["within_reference_scatter"] = case["q_c_rms_error"] <= reference["one_packing_rms_vs_average"]
         cases.append(case)
-        print(f"{bc} window {window * 100:.1f} cm: {case['grains']} grains, {case['speedup_total']:.1f}x faster "
+        print(f"{bc} window {window * 100:.1f} cm, {continuum}: {case['grains']} grains, "
+              f"{case['speedup_total']:.1f}x faster "
               f"(push {case['speedup_push']:.1f}x), q_c RMS error {case['q_c_rms_error']:.1%} (reference scatter "
               f"{reference['one_packing_rms_vs_average']:.1%}), steady mean {case['q_c_steady_error']:.1%}", flush=True)
     return {"parameters": prm, "depth": grid.tolist(), "full_dem": reference, "coupled": cases}
@@ -237,8 +254,9 @@ def plot(results: dict) -> None:
         ax.fill_betweenx(d, ref - std, ref + std, color="0.85", label="full DEM, +-1 std over packings")
         ax.plot(ref, d, "k", lw=2, label=f"full DEM ({r['full_dem']['grains']} grains)")
         for c in r["coupled"]:
-            ax.plot(np.array(c["q_c_mean"]) / 1e3, d,
-                    label=f"coupled, window {c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
+            plastic = " plastic" if c.get("continuum", "micropolar") != "micropolar" else ""
+            ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-",
+                    label=f"coupled{plastic}, window {c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
         ax.invert_yaxis()
         ax.set_xlabel(f"q_c, filtered over {args.smooth * 1000:.0f} mm [kPa]")
         ax.set_ylabel("depth [cm]")
@@ -251,8 +269,11 @@ def plot(results: dict) -> None:
         color = f"C{k}"
         ax.axhspan(0, ref["one_packing_rms_vs_average"], color=color, alpha=0.12,
                    label=f"{bc}: one full-DEM packing vs average")
-        ax.plot([c["total_s_mean"] for c in r["coupled"]], [c["q_c_rms_error"] for c in r["coupled"]], "o-",
-                color=color, label=f"{bc}: coupled (seed-averaged)")
+        for model, marker in (("micropolar", "o-"), ("micropolar_drucker_prager", "s--")):
+            pts = [c for c in r["coupled"] if c.get("continuum", "micropolar") == model]
+            if pts:
+                ax.plot([c["total_s_mean"] for c in pts], [c["q_c_rms_error"] for c in pts], marker, color=color,
+                        label=f"{bc}: coupled, {model} (seed-averaged)")
         ax.axvline(ref["total_s_mean"], color=color, ls="--", label=f"{bc}: full DEM run time")
     ax.set_xscale("log")
     ax.set_xlabel("run time per packing [s] (set-up + push, one core)")
