@@ -18,7 +18,7 @@ from dem.periodic import PeriodicCell, cell_stress
 from dem.prescribed import Interpolated, Prescribed, Translated
 from dem.rigid import RigidBody, read_surface, sample_surface
 from dem.state import FIXED, FREE, GHOST, Particles
-from dem.timestep import critical_dt, hertz_dt, rayleigh_dt
+from dem.timestep import critical_dt, default_time_step, hertz_dt, rayleigh_dt
 from dem.walls import PlaneWall, WallSet, box_walls
 
 __all__ = ["DistributedSimulation", "Interpolated", "Prescribed", "Translated", "PeriodicCell", "cell_stress",
@@ -26,4 +26,4 @@ __all__ = ["DistributedSimulation", "Interpolated", "Prescribed", "Translated", 
            "FREE", "GHOST", "LAWS", "BlowUpError", "ContactMaterial", "DemError",
            "DomainError", "MaterialError", "NeighbourList", "OverlapError", "Particles",
            "PlaneWall", "Simulation", "TimeStepError", "WallSet", "box_walls", "build_pairs",
-           "critical_dt", "hertz_dt", "rayleigh_dt"]
+           "critical_dt", "default_time_step", "hertz_dt", "rayleigh_dt"]

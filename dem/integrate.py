@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 
 import numpy as np
 from numba import get_num_threads, njit, prange
@@ -360,7 +361,8 @@ class Simulation:
         blowup_factor, check_every: every ``check_every`` steps a NaN, or a kinetic energy
             above ``blowup_factor`` x the energy put in so far, raises `BlowUpError` after
             writing the last good state to ``state_path`` (default
-            ``./dem_last_good_state.npz``).
+            ``<tempdir>/dem_last_good_state_<pid>.npz``, not the working directory: a
+            library call should not litter it; the error names the file).
         cell: a `dem.periodic.PeriodicCell` (then ``p.v`` are fluctuations about the
             cell's affine velocity field; no walls, ghosts or domain box).
     """
@@ -403,7 +405,8 @@ class Simulation:
         self.nl = NeighbourList(particles.n, skin)
         self.domain = None if domain is None else np.asarray(domain, float).reshape(2, 3)
         self.blowup_factor, self.check_every = float(blowup_factor), int(check_every)
-        self.state_path = state_path or os.path.join(os.getcwd(), "dem_last_good_state.npz")
+        self.state_path = state_path or os.path.join(tempfile.gettempdir(),
+                                                  f"dem_last_good_state_{os.getpid()}.npz")
         if cell is None and not allow_overlap:
             # round-off contacts (1e-9 of a radius) are not overlaps
             particles.check_overlaps(allow=allow_overlap, tol=1e-9 * float(particles.radius.max()))
@@ -596,8 +599,9 @@ class Simulation:
         the same bits as `_kick` then `_drift`), so a caller that needs to act between
         steps passes ``hook`` rather than calling ``step(1)`` n times: ``hook()`` runs after
         each step's force pass, before its second half-kick (forces new, v still the
-        half-step velocity; it may write the rows of particles that are not FREE), and a
-        true return ends the call after that step. ``prescribed``: a
+        half-step velocity; it may write the rows of particles that are not FREE; ``sim.time``
+        and ``sim.nsteps`` still hold the values before the step), and a true return ends the
+        call after that step. ``prescribed``: a
         `dem.prescribed.Prescribed` whose motions of GHOST rows are written before each
         step's drift (the same bits as writing them from Python before each of n
         ``step(1)`` calls; ghosts' rotations are booked as dt omega, so a prescribed omega

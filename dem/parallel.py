@@ -37,6 +37,7 @@ mpi4py is imported lazily (``import dem`` stays free of MPI); every public metho
 from __future__ import annotations
 
 import os
+import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -307,7 +308,8 @@ class DistributedSimulation:
         self.gravity = np.asarray(gravity, float).reshape(3)
         self.domain = None if domain is None else np.asarray(domain, float).reshape(2, 3)
         self.blowup_factor, self.check_every = float(blowup_factor), int(check_every)
-        self.state_path = state_path or os.path.join(os.getcwd(), "dem_last_good_state.npz")
+        self.state_path = state_path or os.path.join(tempfile.gettempdir(),
+                                                  f"dem_last_good_state_{os.getpid()}.npz")
         chunk = self._set_up_on_root(particles, dt, safety, force_dt, v_max, skin, halo_skin,
                                      allow_overlap, owner)
         self.owner = owner if owner is not None else self._bisection

@@ -17,7 +17,7 @@ import numpy as np
 from dem.contact import ContactMaterial
 from dem.errors import TimeStepError
 
-__all__ = ["DEFAULT_SAFETY", "choose_dt", "critical_dt", "hertz_dt", "rayleigh_dt"]
+__all__ = ["DEFAULT_SAFETY", "choose_dt", "critical_dt", "default_time_step", "hertz_dt", "rayleigh_dt"]
 
 
 def rayleigh_dt(radius, E: float, nu: float, density: float) -> float:
@@ -59,6 +59,14 @@ def critical_dt(particles, materials, v_max: float | None = None) -> float:
 DEFAULT_SAFETY = {"hertz_mindlin": 0.2, "linear": 0.05}
 """Default dt / dt_crit: 0.2 Rayleigh (peers; ~27 steps per Hertz contact) and 0.05 of the
 linear stability limit (~31 steps per linear contact)."""
+
+
+def default_time_step(particles, materials, v_max: float | None = None) -> float:
+    """The step [s] a `dem.Simulation` of these particles and materials takes by default
+    (``dt=None``): `DEFAULT_SAFETY` of the first material's law times `critical_dt`, known
+    before the simulation is built (to size a push velocity or an output interval)."""
+    mats = [materials] if isinstance(materials, ContactMaterial) else list(materials)
+    return DEFAULT_SAFETY[mats[0].law] * critical_dt(particles, mats, v_max)
 
 
 def choose_dt(dt: float | None, dt_crit: float, safety: float = 0.2,

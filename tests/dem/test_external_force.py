@@ -66,3 +66,16 @@ def test_external_force_rejects_bad_rows_and_values():
     assert p.force[0, 1] == 0.0
     sim.step(10)
     assert p.v[0, 1] == 0.0
+
+
+def test_default_time_step_is_known_before_the_simulation():
+    from dem import default_time_step
+
+    x = np.array([[0.0, 0.0, 0.0], [3e-3, 0.0, 0.0]])
+    p = Particles.spheres(x, np.array([1e-3, 1.2e-3]), 2650.0, dim=2)
+    dt = default_time_step(p, MAT)
+    assert Simulation(p, MAT).dt == dt
+    # a blow-up's state file goes to the temporary directory, not the working one
+    import os
+    import tempfile
+    assert os.path.dirname(Simulation(p, MAT).state_path) == tempfile.gettempdir()
