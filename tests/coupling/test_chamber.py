@@ -86,3 +86,18 @@ def test_plastic_continuum_starts_from_the_window_stress_and_restarts(tmp_path):
     assert [h["q_c"] for h in got] == [h["q_c"] for h in ref]
     for name, f in model.problem.state.committed.items():
         np.testing.assert_array_equal(f.x.array, again.problem.state.committed[name].x.array, err_msg=name)
+
+
+@pytest.mark.mpi
+def test_plastic_chamber_on_any_rank_count():
+    """The plastic chamber runs on every rank count with one initial stress and one q_c on
+    all ranks (the grains are replicated; the continuum's solve is redundant)."""
+    comm = MPI.COMM_WORLD
+    prm = PenetrationParameters(**CHAMBER, continuum="micropolar_drucker_prager", continuum_friction_deg=35.0,
+                                lateral="stress")
+    model = CoupledPenetration(prm, comm, log=lambda m: None)
+    history = model.run(steps=3)
+    q = [h["q_c"] for h in history]
+    assert np.isfinite(q).all()
+    assert all(other == q for other in comm.allgather(q))
+    assert all(s == model.initial_stress for s in comm.allgather(model.initial_stress))
