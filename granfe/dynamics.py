@@ -84,7 +84,10 @@ class GeneralizedAlpha:
              + model.internal_work(problem.split(w_mid), dw, state)) * problem.dx
         L = problem.external_work(dw)
         F = F - L if L != 0 else F
-        options = {"snes_lag_jacobian": -2, "snes_lag_jacobian_persists": True}
+        # a linear model's Jacobian is the same at every step: factorise it once; a plastic
+        # one's changes with the state (lagged, Newton degrades to a linear rate of ~0.8)
+        options = ({"snes_lag_jacobian": -2, "snes_lag_jacobian_persists": True}
+                   if model.linear and not problem.state else {})
         options.update(problem.petsc_options)
         saved, problem.petsc_options = problem.petsc_options, options
         self._snes = problem.snes_problem(F, prefix or problem.prefix + "dyn_")
