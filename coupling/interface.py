@@ -126,10 +126,12 @@ class CouplingInterface(DistributedVectors):
                              "handshake depth or the mesh has no nodes inside it")
         dofs = np.unique(np.concatenate(bc_dofs)).astype(np.int32)
         problem.bcs.append(fem.dirichletbc(self.g, dofs))
-        # the FE problem is linear and only the Dirichlet values change between solves:
-        # factorise the Jacobian once and reuse it
-        problem.petsc_options.setdefault("snes_lag_jacobian", -2)
-        problem.petsc_options.setdefault("snes_lag_jacobian_persists", True)
+        # a linear FE problem whose Dirichlet values alone change between solves: factorise
+        # the Jacobian once and reuse it (not for a model with state: a plastic one's
+        # Jacobian changes, and a lagged one makes Newton converge linearly)
+        if problem.model.linear and not problem.state:
+            problem.petsc_options.setdefault("snes_lag_jacobian", -2)
+            problem.petsc_options.setdefault("snes_lag_jacobian_persists", True)
         problem.invalidate()
         self.setup_time = time.perf_counter() - t0
 

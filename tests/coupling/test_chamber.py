@@ -78,6 +78,8 @@ def test_plastic_continuum_starts_from_the_window_stress_and_restarts(tmp_path):
     assert -1.6 * prm.vertical_stress < syy < -0.6 * prm.vertical_stress
     assert syy < sxx < 0
     model.run(steps=2)
+    # a Jacobian rebuilt at every Newton iteration (a lagged one converged linearly, 50+)
+    assert model.stepper._snes.solver.getIterationNumber() <= 6
     model.save_checkpoint(tmp_path / "ck")
     ref = model.run(steps=2)
     again = CoupledPenetration(prm, comm, log=lambda m: None, checkpoint=tmp_path / "ck")
