@@ -502,6 +502,12 @@ class Simulation:
             self._hit[rows] = 1   # the kick reads their force rows
         return e1 + e2, s1 + s2
 
+    def kinds_changed(self) -> None:
+        """Call after writing ``p.kind`` from outside (grains held or released): the ledger
+        books the ghosts' work over the new set of GHOST rows."""
+        self._ghosts = self._ghost_index()
+        self._at = self._positions()
+
     def external_force(self):
         """(rows (k,), forces (k, 3) [N]) of `set_external_force` (empty if none)."""
         if self._ext is None:

@@ -12,7 +12,11 @@ on. Here:
   set_external_force`), the grains above the cone too: a membrane the cone pierces (a
   hole would leave its grains unloaded, squeezed up by the loaded ones around it);
 - **consolidation**: dynamic relaxation (`dem.relax`) to a stated unbalanced-force ratio,
-  with the sides rigid (the chamber's walls, or the window's held ghost band): K0;
+  with the sides rigid and smooth (frictionless walls: rough ones carry the load by
+  friction, as in a silo): K0. A coupled window consolidates with its ghost band as one
+  specimen inside smooth walls round the band, and the band's grains are held (become the
+  ghosts) only then: a band held from the start would carry the surcharge by friction (a
+  window 20 grains wide measured 39 kPa of vertical stress under 100 kPa on top);
 - **BC1**: the side walls are then withdrawn and each grain that touched one carries the
   force the wall put on it at the end of consolidation, constant from then on (a
   flexible membrane at the consolidated lateral stress); BC3 keeps the walls.
@@ -30,7 +34,8 @@ import numpy as np
 
 from coupling.apps.penetration.parameters import VERTICAL
 
-__all__ = ["surcharge", "consolidate", "membrane_from_walls", "apply_loads"]
+__all__ = ["surcharge", "consolidate", "consolidate_window", "membrane_from_walls", "apply_loads",
+           "smooth_walls", "box_around"]
 
 
 def surcharge(x: np.ndarray, candidates: np.ndarray, prm, width: float) -> tuple[np.ndarray, np.ndarray]:
@@ -93,3 +98,51 @@ def apply_loads(sim, *loads) -> None:
     total = np.zeros((len(uniq), 3))
     np.add.at(total, inv, f)
     sim.set_external_force(uniq, total)
+
+
+def smooth_walls(material) -> list:
+    """The grains' material and a frictionless twin for walls (material 1; the pair takes
+    the smaller friction)."""
+    from dataclasses import replace
+
+    return [material, replace(material, friction=0.0)]
+
+
+def box_around(x: np.ndarray, radius: np.ndarray, dim: int) -> list:
+    """Smooth walls (material 1) touching the lattice ``x`` (n, 3) on its sides and bottom."""
+    from dem import PlaneWall
+
+    ax = VERTICAL[dim]
+    r = float(radius.max())
+    walls = []
+    for k in range(dim - 1):
+        e = np.eye(3)[k]
+        walls.append(PlaneWall(tuple((x[:, k].min() - r) * e), tuple(e), material=1))
+        walls.append(PlaneWall(tuple((x[:, k].max() + r) * e), tuple(-e), material=1))
+    e = np.eye(3)[ax]
+    walls.append(PlaneWall(tuple((x[:, ax].min() - r) * e), tuple(e), material=1))
+    return walls
+
+
+def consolidate_window(sim, prm, n: int, band: np.ndarray, width: float, log=print) -> None:
+    """Consolidate a coupled window with its ghost band (rows ``band``, GHOST) free inside the
+    simulation's smooth walls, under the surcharge on the top row of the ``n`` grains
+    spanning ``width`` [m]; then hold the band again (at rest: the ghosts), withdraw the
+    walls and keep the surcharge on the window's free top grains only."""
+    from dem import FREE, GHOST
+
+    p = sim.p
+    p.kind[band] = FREE
+    sim.kinds_changed()
+    grains = np.arange(n)
+    apply_loads(sim, surcharge(p.x[:n], grains, prm, width))
+    consolidate(sim, prm, log)
+    sim.set_external_force(None, None)
+    p.kind[band] = GHOST
+    p.v[band] = 0.0
+    p.omega[band] = 0.0
+    sim.kinds_changed()
+    membrane_from_walls(sim, list(range(len(sim.walls))))   # withdraws them (what they carried is dropped:
+    # the ghosts, held where the walls left them, carry it)
+    free = grains[p.kind[:n] == FREE]
+    apply_loads(sim, surcharge(p.x[:n], free, prm, width))

@@ -61,7 +61,15 @@ import dolfinx_solver  # noqa: F401
 
 import numpy as np
 
-from coupling.apps.penetration.chamber import apply_loads, consolidate, membrane_from_walls, surcharge
+from coupling.apps.penetration.chamber import (
+    apply_loads,
+    box_around,
+    consolidate,
+    consolidate_window,
+    membrane_from_walls,
+    smooth_walls,
+    surcharge,
+)
 from coupling.apps.penetration.parameters import VERTICAL, PenetrationParameters
 from coupling.apps.penetration.penetrators import cone_clump, cone_parts, cone_record, penetrator_clump, tip_height
 from coupling.interface import IQNILS, CouplingInterface, IQNOptions
@@ -216,11 +224,14 @@ class DemPenetration:
         p = Particles.spheres(np.vstack([x, pen]), np.concatenate([radius, np.full(len(pen), r_pen)]),
                               prm.density, dim=dim,
                               kind=np.concatenate([np.zeros(n), np.full(len(pen), GHOST)]).astype(np.int8))
-        walls = [PlaneWall(tuple(-W / 2 * e), tuple(e)) for e in np.eye(3)[:dim - 1]]
-        walls += [PlaneWall(tuple(W / 2 * e), tuple(-e)) for e in np.eye(3)[:dim - 1]]
-        walls.append(PlaneWall(tuple(-H * np.eye(3)[ax]), tuple(np.eye(3)[ax])))
+        # a chamber under a vertical stress has smooth (lubricated) walls: rough ones would
+        # carry the load by friction (a silo)
+        wm, materials = (1, smooth_walls(material)) if prm.vertical_stress > 0 else (0, material)
+        walls = [PlaneWall(tuple(-W / 2 * e), tuple(e), material=wm) for e in np.eye(3)[:dim - 1]]
+        walls += [PlaneWall(tuple(W / 2 * e), tuple(-e), material=wm) for e in np.eye(3)[:dim - 1]]
+        walls.append(PlaneWall(tuple(-H * np.eye(3)[ax]), tuple(np.eye(3)[ax]), material=wm))
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
-        self.sim = Simulation(p, material, walls=walls, gravity=_gravity(prm),
+        self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
                               dt=dem_time_step(prm, radius), allow_overlap=True)
         self.sim.dt *= prm.dt_factor
         self.sim.compute_forces(update_history=False)
@@ -304,9 +315,14 @@ class CoupledPenetration:
         Particles.spheres(self.x_grains, radius, prm.density, dim=dim).check_overlaps()
         p = Particles.spheres(x, r, prm.density, dim=dim, kind=kind)
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
-        # the penetrator's spheres overlap each other by construction (a smooth rigid outline)
-        self.sim = Simulation(p, self.material, gravity=_gravity(prm), dt=dem_time_step(prm, radius),
-                              allow_overlap=True)
+        # the penetrator's spheres overlap each other by construction (a smooth rigid outline);
+        # under a vertical stress the window and its band consolidate together inside smooth
+        # walls round the band (chamber.consolidate_window)
+        walls, materials = (), self.material
+        if prm.vertical_stress > 0:
+            walls, materials = box_around(self.x_grains, radius, dim), smooth_walls(self.material)
+        self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
+                              dt=dem_time_step(prm, radius), allow_overlap=True)
         self.sim.dt *= prm.dt_factor
         # the clump's own (constant) internal forces, to subtract from the penetrator's resultant
         self.sim.compute_forces(update_history=False)
@@ -318,8 +334,10 @@ class CoupledPenetration:
         saved = None
         if checkpoint is None:
             t0 = time.perf_counter()
-            # the top row spans the window and its band (their ghosts carry their share)
-            _settle(self.sim, prm, n, np.flatnonzero(self.kinds == 0), 2 * (a + band), log)
+            if prm.vertical_stress > 0:
+                consolidate_window(self.sim, prm, n, np.flatnonzero(self.kinds == 1), 2 * (a + band), log)
+            else:
+                _settle(self.sim, prm, n, np.flatnonzero(self.kinds == 0), 2 * (a + band), log)
             e = self.sim.energy()
             log(f"settled {n} grains in {time.perf_counter() - t0:.1f} s "
                 f"({self.sim.nsteps} steps of {self.sim.dt:.3g} s), kinetic energy "
