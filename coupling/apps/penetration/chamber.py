@@ -17,9 +17,11 @@ on. Here:
   specimen inside smooth walls round the band, and the band's grains are held (become the
   ghosts) only then: a band held from the start would carry the surcharge by friction (a
   window 20 grains wide measured 39 kPa of vertical stress under 100 kPa on top);
-- **BC1**: the side walls are then withdrawn and each grain that touched one carries the
-  force the wall put on it at the end of consolidation, constant from then on (a
-  flexible membrane at the consolidated lateral stress); BC3 keeps the walls.
+- **BC1**: the side walls are then servo-controlled (`dem.ServoWall`, updated once per
+  block of DEM steps) to hold the lateral stress they carried at the end of consolidation,
+  as DEM calibration chambers do (Arroyo et al. 2011); BC3 keeps them fixed. (Constant
+  forces on the boundary grains instead, a point-load membrane, leaked: the grains between
+  the loaded ones squeezed out and the chamber spread.)
 
 The continuum side of a coupled chamber carries the increment from this state (see
 :mod:`coupling.apps.penetration.coupled`): its top is traction-free (the vertical stress
@@ -34,7 +36,7 @@ import numpy as np
 
 from coupling.apps.penetration.parameters import VERTICAL
 
-__all__ = ["surcharge", "consolidate", "consolidate_window", "membrane_from_walls", "apply_loads",
+__all__ = ["surcharge", "consolidate", "consolidate_window", "withdraw_walls", "side_servos", "apply_loads",
            "smooth_walls", "box_around"]
 
 
@@ -73,25 +75,33 @@ def consolidate(sim, prm, log=print) -> dict:
     return info
 
 
-def membrane_from_walls(sim, walls: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Withdraw the planar walls ``walls`` (moved far outward along their normals) and return
-    the rows and forces (k, 3) they put on the grains just before: a flexible membrane at
-    the same stress (BC1). The forces now in the arrays no longer hold the walls'."""
-    p = sim.p
-    before = p.force.copy()
-    span = float(np.ptp(p.x, axis=0).max()) + 1.0
+def withdraw_walls(sim, walls: list[int]) -> None:
+    """Move the planar walls ``walls`` far outward along their normals (their contacts end;
+    the contact history of the rest is kept)."""
+    span = float(np.ptp(sim.p.x, axis=0).max()) + 1.0
     for k in walls:
         sim.walls.point[k] -= span * sim.walls.normal[k]
+    sim.compute_forces()
+
+
+def side_servos(sim, walls: list[int], height: float, width: float, modulus: float, block: float,
+                velocity: float) -> list:
+    """BC1: `dem.ServoWall` controllers holding the side walls ``walls`` at the lateral stress
+    they carry now (smooth walls: their normal force over ``height`` [m], per unit thickness
+    in 2D), updated every ``block`` [s]. The gain moves a wall, over one block, by a fifth of
+    what would cancel the stress error in a chamber of ``width`` [m] and constrained modulus
+    ``modulus`` [Pa] (more overshoots); speed at most the push ``velocity`` [m/s]."""
+    from dem import ServoWall
+
     sim.compute_forces(update_history=False)
-    wall = before - p.force
-    rows = np.flatnonzero((np.abs(wall).sum(axis=1) > 0) & (p.kind == 0))
-    sim.compute_forces()   # the contact history without the walls
-    return rows, wall[rows]
+    gain = 0.2 * width / (modulus * block)
+    return [ServoWall(k, float(-(sim.walls.force[k] @ sim.walls.normal[k]) / height), height, gain, velocity)
+            for k in walls]
 
 
 def apply_loads(sim, *loads) -> None:
     """Set the sum of several (rows, forces) loads as the simulation's external forces (a
-    grain at a corner is in the top row and on the membrane)."""
+    grain may carry several)."""
     rows = np.concatenate([r for r, _ in loads]) if loads else np.zeros(0, np.int64)
     f = np.concatenate([f for _, f in loads]) if loads else np.zeros((0, 3))
     uniq, inv = np.unique(rows, return_inverse=True)
@@ -142,7 +152,7 @@ def consolidate_window(sim, prm, n: int, band: np.ndarray, width: float, log=pri
     p.v[band] = 0.0
     p.omega[band] = 0.0
     sim.kinds_changed()
-    membrane_from_walls(sim, list(range(len(sim.walls))))   # withdraws them (what they carried is dropped:
-    # the ghosts, held where the walls left them, carry it)
+    # what the walls carried the ghosts, held where the walls left them, carry now
+    withdraw_walls(sim, list(range(len(sim.walls))))
     free = grains[p.kind[:n] == FREE]
     apply_loads(sim, surcharge(p.x[:n], free, prm, width))

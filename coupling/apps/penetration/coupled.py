@@ -66,7 +66,7 @@ from coupling.apps.penetration.chamber import (
     box_around,
     consolidate,
     consolidate_window,
-    membrane_from_walls,
+    side_servos,
     smooth_walls,
     surcharge,
 )
@@ -237,10 +237,12 @@ class DemPenetration:
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
         t0 = time.perf_counter()
-        loads = _settle(self.sim, prm, n, np.arange(n), W, log)
-        if prm.lateral == "stress":   # BC1: the side walls become a membrane at their stress
-            loads.append(membrane_from_walls(self.sim, list(range(2 * (dim - 1)))))
-            apply_loads(self.sim, *loads)
+        _settle(self.sim, prm, n, np.arange(n), W, log)
+        # BC1: the side walls servo-controlled at the lateral stress they carry now
+        # (the 2D disks' modulus is of the order of kn, N/m per m thickness)
+        self.servos = side_servos(self.sim, list(range(2 * (dim - 1))), float(np.ptp(self.sim.p.x[:n, ax])),
+                                  W, prm.kn, prm.substeps * self.sim.dt, prm.velocity) \
+            if prm.lateral == "stress" else []
         lower_penetrator(self.sim.p, n, self.pen0, r_pen, prm)
         log(f"full DEM: settled {n} grains in {time.perf_counter() - t0:.1f} s")
         self.history: list[dict] = []
@@ -254,6 +256,8 @@ class DemPenetration:
         depth, t = 0.0, 0.0
         for k in range(n_steps):
             t0 = time.perf_counter()
+            for servo in self.servos:   # each wall's speed, held over the block
+                servo(sim)
             depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), depth, prm.velocity,
                               VERTICAL[prm.dim])
             t += block
