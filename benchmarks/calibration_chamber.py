@@ -74,6 +74,9 @@ parser.add_argument("--friction-deg", type=float, default=30.0,
                     help="the Drucker-Prager continuum's friction angle (plane-strain match)")
 parser.add_argument("--reuse", action="store_true",
                     help="take a case's record from --work if it ran with the same parameters")
+parser.add_argument("--merge", type=Path, nargs="+", default=None,
+                    help="combine the boundary conditions of these results files (runs split over "
+                         "processes: --bcs BC3 in one, --bcs BC1 in another) into one, with its figure")
 parser.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
 args = parser.parse_args()
 
@@ -295,8 +298,19 @@ if __name__ == "__main__":
     if args.worker is not None:
         worker(args.worker)
         sys.exit(0)
-    args.work.mkdir(parents=True, exist_ok=True)
     args.results.mkdir(parents=True, exist_ok=True)
+    if args.merge:
+        parts = [json.loads(f.read_text()) for f in args.merge]
+        results = dict(parts[0], cases={bc: c for part in parts for bc, c in part["cases"].items()},
+                       merged_from=[{"file": str(f), "command": part["command"], "machine": part["machine"],
+                                     "wall_time_s": part["wall_time_s"]} for f, part in zip(args.merge, parts,
+                                                                                            strict=True)])
+        args.smooth, args.stress = results["inputs"]["smooth"], results["inputs"]["stress"]
+        (args.results / "calibration_chamber.json").write_text(json.dumps(results, indent=1, default=float))
+        plot(results)
+        print(f"wrote {args.results / 'calibration_chamber.json'}")
+        sys.exit(0)
+    args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     results = {"cases": {bc: compare(bc) for bc in args.bcs}}
     results["inputs"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()} | {"short": SHORT}
