@@ -78,13 +78,25 @@ def settle_scene(P, n):
 
     s = P.settle_params()
     pos, lx, ly, _ = P.lattice(n)
-    mat = dem.ContactMaterial(E=s["E"], nu=s["NU"], density=s["RHO"], friction=s["MU"],
-                              restitution=s["COR"], limit_force=True)
-    walls = [dem.PlaneWall((0, 0, 0), (0, 0, 1)), dem.PlaneWall((0, 0, 0), (1, 0, 0)),
-             dem.PlaneWall((lx, 0, 0), (-1, 0, 0)), dem.PlaneWall((0, 0, 0), (0, 1, 0)),
-             dem.PlaneWall((0, ly, 0), (0, -1, 0))]
     p = dem.Particles.spheres(pos, s["R"], s["RHO"])
-    return p, mat, walls, dict(gravity=(0, 0, -s["G"]), dt=s["DT"], skin=s["SKIN"])
+    return p, settle_material(s), open_box(lx, ly), dict(gravity=(0, 0, -s["G"]), dt=s["DT"], skin=s["SKIN"])
+
+
+def settle_material(s):
+    """The peers' Hertz-Mindlin material of the settle scene's parameters ``s``."""
+    import dem
+
+    return dem.ContactMaterial(E=s["E"], nu=s["NU"], density=s["RHO"], friction=s["MU"],
+                               restitution=s["COR"], limit_force=True)
+
+
+def open_box(lx, ly):
+    """Floor and four side walls of an ``lx`` x ``ly`` box open at the top."""
+    import dem
+
+    return [dem.PlaneWall((0, 0, 0), (0, 0, 1)), dem.PlaneWall((0, 0, 0), (1, 0, 0)),
+            dem.PlaneWall((lx, 0, 0), (-1, 0, 0)), dem.PlaneWall((0, 0, 0), (0, 1, 0)),
+            dem.PlaneWall((0, ly, 0), (0, -1, 0))]
 
 
 def settle_sim(P, n):
@@ -214,21 +226,15 @@ def dense_sim(P, kind, n):
     if kind == "idle":  # n spheres on a lattice 0.1 mm apart: candidates, no contact
         s = P.settle_params()
         pos, lx, ly, _ = P.lattice(n, spacing=2.1 * P.R, jitter=0.0, nz=8)
-        mat = dem.ContactMaterial(E=s["E"], nu=s["NU"], density=s["RHO"], friction=s["MU"],
-                                  restitution=s["COR"], limit_force=True)
         walls = dem.box_walls((0, 0, 0), (lx, ly, pos[:, 2].max() + P.R * 1.1))
         p = dem.Particles.spheres(pos, s["R"], s["RHO"])
-        return dem.Simulation(p, mat, walls, (0, 0, 0), dt=s["DT"], skin=s["SKIN"])
+        return dem.Simulation(p, settle_material(s), walls, (0, 0, 0), dt=s["DT"], skin=s["SKIN"])
     if kind == "3d":
         s = P.settle_params()
         pos, lx, ly = dense_lattice(P, n)
-        mat = dem.ContactMaterial(E=s["E"], nu=s["NU"], density=s["RHO"], friction=s["MU"],
-                                  restitution=s["COR"], limit_force=True)
-        walls = [dem.PlaneWall((0, 0, 0), (0, 0, 1)), dem.PlaneWall((0, 0, 0), (1, 0, 0)),
-                 dem.PlaneWall((lx, 0, 0), (-1, 0, 0)), dem.PlaneWall((0, 0, 0), (0, 1, 0)),
-                 dem.PlaneWall((0, ly, 0), (0, -1, 0))]
         p = dem.Particles.spheres(pos, s["R"], s["RHO"])
-        return dem.Simulation(p, mat, walls, (0, 0, -s["G"]), dt=s["DT"], skin=s["SKIN"])
+        return dem.Simulation(p, settle_material(s), open_box(lx, ly), (0, 0, -s["G"]), dt=s["DT"],
+                              skin=s["SKIN"])
     d = DISK
     ncol = int(np.ceil(np.sqrt(n / 0.866)))  # a square-ish bed
     width = (ncol + 0.5) * 2 * d["R"]

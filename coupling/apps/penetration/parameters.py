@@ -73,7 +73,7 @@ class PenetrationParameters:
     # [Pa] on the top grains (0: a free surface under gravity), consolidated by dynamic
     # relaxation to consolidation_tol (unbalanced-force ratio); lateral = "rigid" keeps the
     # sides from moving (BC3, zero lateral strain), "stress" holds the consolidated lateral
-    # stress constant (BC1, a flexible membrane)
+    # stress constant (BC1, servo-controlled side walls)
     vertical_stress: float = 0.0
     lateral: str = "rigid"
     consolidation_tol: float = 1e-3
