@@ -70,6 +70,11 @@ parser.add_argument("--relaxation", type=float, default=0.1,
 parser.add_argument("--continuum", nargs="+", default=["micropolar"],
                     choices=["micropolar", "micropolar_drucker_prager"],
                     help="the coupled cases' continuum models (each with every window)")
+parser.add_argument("--constants", nargs="+", default=["lattice"], choices=["lattice", "calibrated"],
+                    help="where the coupled cases' continuum constants come from (each with every "
+                         "model and window): the lattice estimate, or element tests on a periodic "
+                         "cell of the grains at the window's stress (with the plastic model also "
+                         "its friction and dilatancy angles)")
 parser.add_argument("--friction-deg", type=float, default=30.0,
                     help="the Drucker-Prager continuum's friction angle (plane-strain match)")
 parser.add_argument("--reuse", action="store_true",
@@ -83,7 +88,8 @@ args = parser.parse_args()
 LATERAL = {"BC3": "rigid", "BC1": "stress"}
 
 
-def parameters(bc: str, seed: int, window: float | None, continuum: str = "micropolar") -> dict:
+def parameters(bc: str, seed: int, window: float | None, continuum: str = "micropolar",
+               constants: str = "lattice") -> dict:
     """The PenetrationParameters of one case (window None: the full DEM's, whose window
     fields only size its unused continuum checks)."""
     r = args.grain_radius
@@ -98,7 +104,8 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
                 window_half_width=window or 0.03, window_depth=window_depth,
                 element_size_window=2.5 * 2 * r, element_size_far=width / 8) | (
                     {} if continuum == "micropolar" else
-                    dict(continuum=continuum, continuum_friction_deg=args.friction_deg))
+                    dict(continuum=continuum, continuum_friction_deg=args.friction_deg)) | (
+                    {} if constants == "lattice" else dict(continuum_constants=constants))
 
 
 def worker(path: Path) -> None:
@@ -145,14 +152,16 @@ def worker(path: Path) -> None:
         out["dofs"] = int(V.dofmap.index_map.size_global * V.dofmap.index_map_bs)
         out["split_s"] = {k: float(np.sum([t.get(k, 0.0) for t in model.step_timings]))
                           for k in model.step_timings[0]}
+        out["calibration"] = model.contact_stats.get("calibration")
     path.with_suffix(".out.json").write_text(json.dumps(out))
 
 
-def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropolar") -> dict:
-    tag = "" if continuum == "micropolar" else "_dp"
+def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropolar",
+             constants: str = "lattice") -> dict:
+    tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal")
     name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm{tag}'}_s{seed}"
     path = args.work / f"{name}.json"
-    case = {"parameters": parameters(bc, seed, window, continuum), "window": window}
+    case = {"parameters": parameters(bc, seed, window, continuum, constants), "window": window}
     done = path.with_suffix(".out.json")
     if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == case:
         print(f"{name}: reused from {done}", flush=True)
@@ -213,12 +222,14 @@ def compare(bc: str) -> dict:
           f"{reference['one_packing_rms_vs_average']:.1%} RMS, standard error of the average "
           f"{reference['standard_error_of_average']:.1%}", flush=True)
     cases = []
-    for continuum, window in [(c, w) for c in args.continuum for w in args.windows]:
-        runs = [run_case(bc, s, window, continuum) for s in seeds]
+    for constants, continuum, window in [(k, c, w) for k in args.constants for c in args.continuum
+                                         for w in args.windows]:
+        runs = [run_case(bc, s, window, continuum, constants) for s in seeds]
         q = np.mean([smoothed(r, "q_c", grid) for r in runs], axis=0)
         total = float(np.mean([r["setup_s"] + r["push_s"] for r in runs]))
         push = float(np.mean([r["push_s"] for r in runs]))
-        case = {"window_half_width": window, "continuum": continuum, "grains": runs[0]["grains"],
+        case = {"window_half_width": window, "continuum": continuum, "constants": constants,
+                "grains": runs[0]["grains"],
                 "dofs": runs[0]["dofs"],
                 "setup_s": [r["setup_s"] for r in runs], "push_s": [r["push_s"] for r in runs],
                 "total_s_mean": total, "push_s_mean": push,
@@ -231,10 +242,11 @@ def compare(bc: str) -> dict:
                 "q_c_mean": q.tolist(),
                 "f_s_mean": np.mean([smoothed(r, "f_s", grid) for r in runs], axis=0).tolist(),
                 "split_s_mean": {k: float(np.mean([r["split_s"][k] for r in runs])) for k in runs[0]["split_s"]},
+                "calibration": runs[0].get("calibration"),
                 "runs": runs}
         case["within_reference_scatter"] = case["q_c_rms_error"] <= reference["one_packing_rms_vs_average"]
         cases.append(case)
-        print(f"{bc} window {window * 100:.1f} cm, {continuum}: {case['grains']} grains, "
+        print(f"{bc} window {window * 100:.1f} cm, {continuum}, {constants} constants: {case['grains']} grains, "
               f"{case['speedup_total']:.1f}x faster "
               f"(push {case['speedup_push']:.1f}x), q_c RMS error {case['q_c_rms_error']:.1%} (reference scatter "
               f"{reference['one_packing_rms_vs_average']:.1%}), steady mean {case['q_c_steady_error']:.1%}", flush=True)
@@ -258,8 +270,10 @@ def plot(results: dict) -> None:
         ax.plot(ref, d, "k", lw=2, label=f"full DEM ({r['full_dem']['grains']} grains)")
         for c in r["coupled"]:
             plastic = " plastic" if c.get("continuum", "micropolar") != "micropolar" else ""
-            ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-",
-                    label=f"coupled{plastic}, window {c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
+            calibrated = c.get("constants", "lattice") == "calibrated"
+            ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-", lw=2 if calibrated else 1,
+                    label=f"coupled{plastic}{', calibrated' if calibrated else ''}, window "
+                          f"{c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
         ax.invert_yaxis()
         ax.set_xlabel(f"q_c, filtered over {args.smooth * 1000:.0f} mm [kPa]")
         ax.set_ylabel("depth [cm]")
@@ -272,11 +286,14 @@ def plot(results: dict) -> None:
         color = f"C{k}"
         ax.axhspan(0, ref["one_packing_rms_vs_average"], color=color, alpha=0.12,
                    label=f"{bc}: one full-DEM packing vs average")
-        for model, marker in (("micropolar", "o-"), ("micropolar_drucker_prager", "s--")):
-            pts = [c for c in r["coupled"] if c.get("continuum", "micropolar") == model]
+        for (model, constants), marker in zip(
+                [(m, k) for k in ("lattice", "calibrated") for m in ("micropolar", "micropolar_drucker_prager")],
+                ("o-", "s--", "^-", "D--"), strict=True):
+            pts = [c for c in r["coupled"] if c.get("continuum", "micropolar") == model
+                   and c.get("constants", "lattice") == constants]
             if pts:
                 ax.plot([c["total_s_mean"] for c in pts], [c["q_c_rms_error"] for c in pts], marker, color=color,
-                        label=f"{bc}: coupled, {model} (seed-averaged)")
+                        label=f"{bc}: coupled, {model}, {constants} (seed-averaged)")
         ax.axvline(ref["total_s_mean"], color=color, ls="--", label=f"{bc}: full DEM run time")
     ax.set_xscale("log")
     ax.set_xlabel("run time per packing [s] (set-up + push, one core)")

@@ -101,3 +101,30 @@ def test_plastic_chamber_on_any_rank_count():
     assert np.isfinite(q).all()
     assert all(other == q for other in comm.allgather(q))
     assert all(s == model.initial_stress for s in comm.allgather(model.initial_stress))
+
+
+def test_calibrated_continuum_takes_the_cell_tests_constants_and_angles():
+    """continuum_constants = "calibrated": the continuum's constants are those of element tests
+    on a periodic cell of the grains at the window's mean stress (softer in shear than the
+    lattice estimate: contacts slide and open), and the plastic continuum takes the cell's
+    peak friction and dilatancy angles instead of the scene's."""
+    prm = PenetrationParameters(**CHAMBER, continuum="micropolar_drucker_prager",
+                                continuum_constants="calibrated", continuum_friction_deg=20.0)
+    model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
+    cal, m = model.contact_stats["calibration"], model.material_fe
+    assert cal["pressure"] == pytest.approx(-0.5 * sum(model.initial_stress), rel=1e-12)
+    assert m.mu + m.kappa / 2 == pytest.approx(cal["shear_modulus"], rel=1e-9)
+    est = cal["lattice_estimate"]
+    assert cal["shear_modulus"] < est["mu"] + est["kappa"] / 2
+    dp = model.problem.model.material
+    assert dp.friction_deg == pytest.approx(cal["friction_peak_deg"]) and dp.friction_deg != 20.0
+    assert 0 <= dp.dilatancy_deg <= dp.friction_deg
+    history = model.run(steps=2)
+    assert np.isfinite([h["q_c"] for h in history]).all()
+
+
+def test_calibrated_constants_are_2d_only():
+    with pytest.raises(ValueError, match="continuum_constants must be 'lattice' or 'calibrated'"):
+        PenetrationParameters(continuum_constants="measured")
+    with pytest.raises(ValueError, match="'calibrated' is 2D only"):
+        PenetrationParameters(dim=3, continuum_constants="calibrated")

@@ -427,8 +427,12 @@ class CoupledPenetration:
             self.initial_stress = self._window_stress()
         elastic = replace(self.material_fe, alpha=0.0, beta=0.0)
         sxx, syy = self.initial_stress
-        mat = DruckerPragerMaterial(elastic, prm.continuum_cohesion, prm.continuum_friction_deg,
-                                    prm.continuum_dilatancy_deg, match="plane_strain",
+        phi, psi = prm.continuum_friction_deg, prm.continuum_dilatancy_deg
+        cal = self.contact_stats.get("calibration")
+        if cal is not None:
+            phi = cal["friction_peak_deg"]
+            psi = min(max(cal["dilatancy_deg"], 0.0), phi)
+        mat = DruckerPragerMaterial(elastic, prm.continuum_cohesion, phi, psi, match="plane_strain",
                                     initial_stress=(sxx, syy, sxx))
         return MicropolarDruckerPrager(mat)
 
@@ -468,8 +472,47 @@ class CoupledPenetration:
         r = sim.p.radius[: self.n_grains]
         lo, hi = self.x_ref[:, :2].min(0), self.x_ref[:, :2].max(0)
         rho = prm.density * np.pi * np.sum(r**2) / np.prod(hi - lo)
+        stats = {"contacts": int(grains.sum()), "coordination": z, "density": rho}
+        if prm.continuum_constants == "calibrated":
+            c, stats["calibration"] = self._calibrated_constants()
         mat = MicropolarMaterial(**c, rho=rho, j=prm.radius**2 / 2)
-        return mat, {"contacts": int(grains.sum()), "coordination": z, "density": rho}
+        return mat, stats
+
+    def _calibrated_constants(self) -> tuple[dict, dict]:
+        """Micropolar constants (lam, mu, kappa, gamma) of element tests on a periodic cell of
+        the scene's grains (:func:`coupling.calibration.calibrate`: the scenes' jittered
+        lattice, compressed to the window's consolidated mean stress), and the record of the
+        calibration (with its peak friction and dilatancy angles when the continuum is
+        plastic). The lattice estimate overrates the shear modulus of a packing whose
+        contacts slide and open (1.45x at 74 kPa in the 2D chamber): the calibration measures it."""
+        from coupling.calibration import CellTest, calibrate
+
+        prm = self.prm
+        if getattr(self, "initial_stress", None) is None:
+            self.initial_stress = self._window_stress()
+        p = -0.5 * sum(self.initial_stress)
+        if not p > 0:
+            raise ValueError(f"continuum.constants = 'calibrated': the window's mean stress {p:.3g} Pa "
+                             "is not compressive, nothing to calibrate at")
+        plastic = prm.continuum != "micropolar"
+        t0 = time.perf_counter()
+        # one rank calibrates (the grains are the same on every rank), every rank takes its result
+        cal = None
+        if self.comm.rank == 0:
+            cal = calibrate(CellTest(self.material, prm.radius, dim=2, pressure=p, packing="lattice",
+                                     spread=prm.jitter, seed=prm.seed,
+                                     shear_strain=0.3 if plastic else 0.0))
+        cal = self.comm.bcast(cal, root=0)
+        record = {"pressure": p, "grains": cal.grains, "solid_fraction": cal.solid_fraction,
+                  "coordination": cal.coordination, "bulk_modulus": cal.bulk_modulus,
+                  "shear_modulus": cal.shear_modulus, "friction_peak_deg": cal.friction_peak_deg,
+                  "friction_critical_deg": cal.friction_critical_deg, "dilatancy_deg": cal.dilatancy_deg,
+                  "lattice_estimate": cal.estimate, "seconds": time.perf_counter() - t0}
+        self.log(f"calibrated the continuum on {cal.grains} grains at p = {p:.4g} Pa in "
+                 f"{record['seconds']:.1f} s: K {cal.bulk_modulus:.4g} Pa, G {cal.shear_modulus:.4g} Pa"
+                 + (f", peak friction {cal.friction_peak_deg:.1f} deg, dilatancy "
+                    f"{cal.dilatancy_deg:.1f} deg" if plastic else ""))
+        return {"lam": cal.lam, "mu": cal.mu, "kappa": cal.kappa, "gamma": cal.gamma}, record
 
     def _continuum_material_3d(self):
         from dem.contact import P_ESTAR, P_GSTAR, pair_table

@@ -82,6 +82,12 @@ class PenetrationParameters:
     # "micropolar_drucker_prager" (2D chambers under a vertical stress: its initial stress is
     # the consolidated window's mean stress), with the cone matched in plane strain
     continuum: str = "micropolar"
+    # where the continuum's constants come from (2D): "lattice", the bonded hexagonal
+    # lattice's constants scaled by the settled window's coordination; "calibrated", element
+    # tests on a periodic cell of the scene's grains at the window's consolidated mean stress
+    # (coupling.calibration; with the Drucker-Prager model its peak friction and dilatancy
+    # angles replace continuum_friction_deg / continuum_dilatancy_deg)
+    continuum_constants: str = "lattice"
     continuum_friction_deg: float = 30.0
     continuum_dilatancy_deg: float = 0.0
     continuum_cohesion: float = 0.0
@@ -149,6 +155,12 @@ class PenetrationParameters:
             raise ValueError("continuum = 'micropolar_drucker_prager' needs dim = 2 and vertical_stress "
                              "> 0 (its yield function needs the total stress: a uniform initial stress, "
                              "the consolidated chamber's; a free surface under gravity has none yet)")
+        if self.continuum_constants not in ("lattice", "calibrated"):
+            raise ValueError(f"continuum_constants must be 'lattice' or 'calibrated', "
+                             f"got {self.continuum_constants!r}")
+        if self.continuum_constants == "calibrated" and self.dim != 2:
+            raise ValueError("continuum_constants = 'calibrated' is 2D only (the 3D continuum takes "
+                             "the affine estimate of its Hertz-Mindlin contacts)")
         if not (0 <= self.continuum_friction_deg < 90):
             raise ValueError(f"continuum_friction_deg must lie in [0, 90), got {self.continuum_friction_deg!r}")
         if not (0 <= self.continuum_dilatancy_deg <= self.continuum_friction_deg):

@@ -83,9 +83,13 @@ class ContinuumModel:
     """The continuum's model: ``micropolar`` (elastic, constants from the settled grains) or
     ``micropolar_drucker_prager`` (those constants and a Drucker-Prager cone matched to
     Mohr-Coulomb in plane strain: friction and dilatancy [deg], cohesion [Pa]; 2D chambers
-    under a vertical stress)."""
+    under a vertical stress). ``constants`` (2D): ``lattice`` (the bonded hexagonal lattice
+    scaled by the window's coordination) or ``calibrated`` (element tests on a periodic cell
+    of the grains at the window's mean stress, :mod:`coupling.calibration`; its peak friction
+    and dilatancy angles then replace ``friction_deg`` and ``dilatancy_deg``)."""
 
     model: str = parameter(P, "continuum")
+    constants: str = parameter(P, "continuum_constants")
     friction_deg: float = parameter(P, "continuum_friction_deg")
     dilatancy_deg: float = parameter(P, "continuum_dilatancy_deg")
     cohesion: float = parameter(P, "continuum_cohesion")
