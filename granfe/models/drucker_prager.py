@@ -250,7 +250,12 @@ class MicropolarDruckerPrager(Micropolar):
         # put on the apex, p = k / A); the hardening modulus of the branch the step starts on
         H = ufl.conditional(k_lin > c.k_r, c.H, 0.0)
         stiff = K * c.A * c.B + H
-        dl_apex = (c.A * p_tr - k) / ufl.max_value(stiff, 1e-300)
+        # without dilatancy or hardening the multiplier at the apex is indeterminate (the
+        # stress is put there by no flow): the volumetric plastic strain stands for it (a
+        # division by the vanishing stiffness made it ~1e305 per step, inf after a few hundred,
+        # and H * inf a NaN in the yield stress)
+        dl_apex = ufl.conditional(stiff > 0, (c.A * p_tr - k) / ufl.max_value(stiff, 1e-300),
+                                  (p_tr - k / ufl.max_value(c.A, 1e-300)) / K)
         scale = ufl.conditional(apex, 0.0, 1 - G * dl_cone / tau_tr)
         dl = ufl.conditional(apex, dl_apex, dl_cone)
         p_apex = ufl.conditional(stiff > 0, p_tr - K * c.B * dl_apex,

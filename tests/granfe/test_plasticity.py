@@ -246,3 +246,23 @@ def test_initial_stress_confines_like_a_traction():
     assert max(axial) == pytest.approx(mohr_coulomb_peak(sigma3, 30.0), rel=1e-9)
     with pytest.raises(ValueError, match="initial_stress .* lies outside the yield cone"):
         DruckerPragerMaterial(ELASTIC, 0.0, 30.0, initial_stress=(-1e5, -1e4, -1e4))
+
+
+def test_apex_without_dilatancy_keeps_a_finite_plastic_strain():
+    """Pulled apart, a cohesionless, non-dilatant cone (its apex stiffness K A B + H is zero)
+    returns to the apex (stress free) with a finite equivalent plastic strain: the volumetric
+    plastic strain, not a division by the vanishing stiffness."""
+    mat = DruckerPragerMaterial(ELASTIC, 0.0, 30.0, 0.0, match="triaxial_compression")
+    p = ContinuumProblem(mesh.create_unit_cube(MPI.COMM_WORLD, 1, 1, 1), MicropolarDruckerPrager(mat),
+                         degree=(1, 1), prefix="apex_")
+    for axis, name in enumerate(("u_x", "u_y", "u_z")):
+        p.fix(_at(axis, 0.0), name)
+        p.fix(_at(axis, 1.0), name, 1e-3)
+    p.fix(lambda x: np.full(x.shape[1], True), "phi")
+    p.solve()
+    p.state.commit()
+    for axis, name in enumerate(("u_x", "u_y", "u_z")):   # stress free: no force on the faces
+        assert abs(p.reaction(_at(axis, 1.0), name)) < 1e-9 * ELASTIC.lam * 1e-3
+    eq = p.state.owned("equivalent_plastic_strain")
+    # volumetric plastic strain 3e-3 (all the strain: the stress is zero)
+    np.testing.assert_allclose(eq, 3e-3, rtol=1e-9)
