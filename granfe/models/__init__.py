@@ -7,15 +7,18 @@ subclass (and its material dataclass), plus one row in :data:`MODELS`.
 from granfe.models.base import ContinuumModel, Field
 from granfe.models.drucker_prager import MicropolarDruckerPrager
 from granfe.models.micropolar import Micropolar
+from granfe.models.poroelastic import MicropolarPoroelastic, Poroelastic
 from granfe.models.strain_memory import StrainMemory
 
 __all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micropolar",
-           "MicropolarDruckerPrager", "StrainMemory"]
+           "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "StrainMemory"]
 
 MODELS: dict[str, type[ContinuumModel]] = {
     Micropolar.name: Micropolar,
     StrainMemory.name: StrainMemory,
     MicropolarDruckerPrager.name: MicropolarDruckerPrager,
+    Poroelastic.name: Poroelastic,
+    MicropolarPoroelastic.name: MicropolarPoroelastic,
 }
 
 
