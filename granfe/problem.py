@@ -189,7 +189,8 @@ class ContinuumProblem:
         shape = () if sub is not None else f.shape
         if shape and not callable(value):
             # dolfinx takes Constant values only per scalar component of a mixed space
-            values = np.broadcast_to(np.asarray(value, dtype=float), shape)
+            # (flattened: a tensor field's components are listed in storage order)
+            values = np.broadcast_to(np.asarray(value, dtype=float), shape).reshape(-1)
             return [self.fix(where, n, float(v)) for n, v in zip(f.components, values, strict=True)]
         return self._dirichlet(component, value, self.facets(where), topological=True)
 
@@ -202,7 +203,7 @@ class ContinuumProblem:
         field, sub = self._component(component)
         f = self.fields[field]
         if f.shape and sub is None and not callable(value):
-            values = np.broadcast_to(np.asarray(value, dtype=float), f.shape)
+            values = np.broadcast_to(np.asarray(value, dtype=float), f.shape).reshape(-1)
             return [self.fix_point(point, n, float(v), tol)
                     for n, v in zip(f.components, values, strict=True)]
         if tol is None:

@@ -6,17 +6,19 @@ subclass (and its material dataclass), plus one row in :data:`MODELS`.
 
 from granfe.models.base import ContinuumModel, Field
 from granfe.models.drucker_prager import MicropolarDruckerPrager
+from granfe.models.micromorphic import Micromorphic
 from granfe.models.micropolar import Micropolar
 from granfe.models.poroelastic import MicropolarPoroelastic, Poroelastic
 from granfe.models.strain_memory import StrainMemory
 
-__all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micropolar",
-           "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "StrainMemory"]
+__all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micromorphic",
+           "Micropolar", "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "StrainMemory"]
 
 MODELS: dict[str, type[ContinuumModel]] = {
     Micropolar.name: Micropolar,
     StrainMemory.name: StrainMemory,
     MicropolarDruckerPrager.name: MicropolarDruckerPrager,
+    Micromorphic.name: Micromorphic,
     Poroelastic.name: Poroelastic,
     MicropolarPoroelastic.name: MicropolarPoroelastic,
 }
