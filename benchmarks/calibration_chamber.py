@@ -96,7 +96,9 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
     cone_radius = args.cone_grains * r
     width = args.width_ratio * 2 * cone_radius
     depth = args.push * 2 * cone_radius
-    window_depth = depth + 2 * cone_radius + 12 * r
+    # the window's bottom lies as far below the final tip as its side lies beside the cone's
+    # shoulder (at least two cone radii and six grain diameters)
+    window_depth = depth + max(2 * cone_radius + 12 * r, (window or 0.0) - cone_radius)
     return dict(chamber_width=width, chamber_depth=args.depth_ratio * width, radius=r, cone_radius=cone_radius,
                 kn=5e7, velocity=args.velocity, depth=depth, dt_factor=3.0, vertical_stress=args.stress,
                 lateral=LATERAL[bc], consolidation_tol=1e-2, seed=seed, substeps=50,
