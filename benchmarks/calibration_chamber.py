@@ -79,6 +79,9 @@ parser.add_argument("--friction-deg", type=float, default=30.0,
                     help="the Drucker-Prager continuum's friction angle (plane-strain match)")
 parser.add_argument("--reuse", action="store_true",
                     help="take a case's record from --work if it ran with the same parameters")
+parser.add_argument("--reference", type=Path, default=None,
+                    help="take the full-DEM runs from an earlier results file (its chamber must be "
+                         "this one; their wall times are then from that run, not this one)")
 parser.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="combine the boundary conditions of these results files (runs split over "
                          "processes: --bcs BC3 in one, --bcs BC1 in another) into one, with its figure")
@@ -187,8 +190,26 @@ def smoothed(run: dict, key: str, grid: np.ndarray) -> np.ndarray:
     return np.interp(grid, run["depth"], filtered(hist, key, args.smooth))
 
 
+def seed_reference(bc: str, seeds: list[int]) -> None:
+    """Put the full-DEM runs of ``args.reference`` into the work directory as finished cases
+    (``--reuse`` then takes them), after checking that its chamber is this one."""
+    old = json.loads(args.reference.read_text())["cases"].get(bc)
+    if old is None or old["parameters"] != parameters(bc, 1, None):
+        raise SystemExit(f"--reference {args.reference}: no {bc} case with this chamber's parameters")
+    runs = old["full_dem"]["runs"]
+    if len(runs) < len(seeds):
+        raise SystemExit(f"--reference {args.reference}: {len(runs)} {bc} packings, {len(seeds)} asked")
+    for s, run in zip(seeds, runs, strict=False):
+        path = args.work / f"{bc}_full_s{s}.json"
+        path.write_text(json.dumps({"parameters": parameters(bc, s, None), "window": None}))
+        path.with_suffix(".out.json").write_text(json.dumps(run))
+    args.reuse = True
+
+
 def compare(bc: str) -> dict:
     seeds = list(range(1, args.seeds + 1))
+    if args.reference is not None:
+        seed_reference(bc, seeds)
     full = [run_case(bc, s, None) for s in seeds]
     grid = np.array(full[0]["depth"])
     prm = parameters(bc, 1, None)
