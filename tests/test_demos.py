@@ -21,6 +21,7 @@ DEMOS = [
     ("demos/2d/terzaghi.py", True),
     ("demos/2d/mandel.py", True),
     ("demos/2d/micromorphic_shear_layer.py", True),
+    ("demos/2d/grain_consolidation.py", False),
     ("demos/2d/coupled_punch.py", True),
     ("demos/2d/wave_through_overlap.py", True),
     ("demos/2d/cpt_coupled.py", True),

@@ -1,0 +1,488 @@
+"""A compressible Darcy pore fluid through the grains, on a dolfinx mesh covering them.
+
+The fluid model of Damsgaard's ``sphere`` (seed 003, eq. 5.4-5.5, after Goren et al. 2011):
+no fluid inertia, Darcy's law for the flux relative to the grains
+
+    n (v_f - v_s) = -(k / mu_f) grad p                                        (seed 003 eq. 5.5)
+
+with ``p`` the deviation from the hydrostatic pressure, and the fluid and (incompressible)
+solid mass balances summed into one transient diffusion equation for ``p`` with the grains'
+volumetric change as its source:
+
+    n beta_f dp/dt + div v_s - div((k / mu_f) grad p) = 0.
+
+It is solved by backward Euler in P1 (or P2) with the grains as they are when it is solved
+(``beta_f = 0``: the steady, incompressible limit). Weak form, test function ``q``, inflow
+``g`` [m/s] on flux boundaries (``v_s . n = 0`` on the boundary: the grains stay inside):
+
+    (n beta_f / dt) (p - p_old, q) + ((k / mu_f) grad p - v_s, grad q) = <g, q>.
+
+From the grains, with the FE basis evaluated at their centroids (:class:`FieldBasis`): the
+solid fraction is the lumped-mass projection ``phi_a = sum_i V_i N_a(x_i) / int N_a``
+(``DG0``, the default: the grains' volumes binned into cells; ``P1``: averaged over each
+node's support, twice the volume, so smoother; a linear N weighs a grain's body as its
+centroid, so both are exact for a lattice filling the cells, and both conserve sum V_i), the
+porosity ``n = 1 - phi`` (clipped to ``[porosity_min, porosity_max]``), and the grains' mean
+velocity ``v_s,a = sum_i V_i v_i N_a(x_i) / sum_i V_i N_a(x_i)``. The permeability is
+Kozeny-Carman ``k = d^2 n^3 / (C (1 - n)^2)`` or a constant. The averaging volume is the
+cell (DG0) or the node's support (P1): it must hold tens of grains, or the scatter of n
+makes k (~n^3) and the forces noisy (measured: Kozeny-Carman flux within 1 % with ~40
+grains per cell, 27 % off with ~12 per triangle).
+
+Back to the grains, through `dem.Simulation.set_external_force` (FREE rows, held constant
+over the DEM steps of one fluid step): the fluid's force on the skeleton per bulk volume is
+``-grad p`` (drag and the excess-pressure buoyancy of Darcy flow) plus the hydrostatic
+buoyancy, so grain ``i`` of volume ``V_i`` gets
+
+    f_i = -V_i grad p(x_i) / (1 - n(x_i)) - rho_f V_i g.
+
+2D: disks of unit thickness (volume = area, forces per metre). Parallel: the grains are held
+whole on every rank (a replicated `dem.Simulation`); each rank evaluates the grains whose
+centroid lies in its cells and the forces are summed over the ranks (each grain on one rank:
+the sum is exact, so every rank applies the same bits). Nothing here runs unless a
+:class:`DarcyFlow` is created.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+
+import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import basix.ufl
+import numpy as np
+import ufl
+from dolfinx import default_scalar_type, fem
+from dolfinx import mesh as _mesh
+from dolfinx.fem.petsc import LinearProblem, assemble_vector
+
+from coupling.locate import owner_ranks, relocate
+from coupling.operators import FieldBasis
+from dem.state import FREE
+from granfe.solvers import check_ksp_converged
+
+__all__ = ["DarcyFlow", "PoreFluidParameters", "kozeny_carman", "grain_volumes"]
+
+Where = str | int | Callable
+
+
+@dataclass(frozen=True)
+class PoreFluidParameters:
+    """The pore fluid and how the grains are seen by it (SI units), validated on construction.
+
+    Attributes:
+        viscosity: dynamic viscosity mu_f [Pa s], > 0 (water: 1e-3).
+        compressibility: adiabatic compressibility beta_f [1/Pa], >= 0 (water: 4.5e-10);
+            0 is the steady (incompressible) limit, which needs a pressure boundary.
+        density: rho_f [kg/m^3], >= 0: the hydrostatic buoyancy ``-rho_f V g``.
+        permeability: a constant k [m^2] > 0, or None for Kozeny-Carman.
+        kozeny_carman: the Kozeny-Carman constant C > 0 (180 for spheres).
+        grain_diameter: d [m] > 0 in Kozeny-Carman; None: the grains' Sauter mean
+            ``2 dim sum V / sum S`` (= 2 r for equal grains).
+        porosity_min, porosity_max: the porosity is clipped to this range (empty cells,
+            crammed cells), 0 < min < max < 1.
+        porosity_space: ``"DG0"`` (cell binning) or ``"P1"`` (nodal) for n and v_s.
+        pressure_degree: Lagrange degree of p, 1 or 2.
+    """
+
+    viscosity: float = 1.0e-3
+    compressibility: float = 4.5e-10
+    density: float = 1000.0
+    permeability: float | None = None
+    kozeny_carman: float = 180.0
+    grain_diameter: float | None = None
+    porosity_min: float = 0.05
+    porosity_max: float = 0.95
+    porosity_space: str = "DG0"
+    pressure_degree: int = 1
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in ("permeability", "grain_diameter") and v is None:
+                continue
+            if f.name == "porosity_space":
+                if v not in ("DG0", "P1"):
+                    raise ValueError(f"PoreFluidParameters.porosity_space must be 'DG0' or "
+                                     f"'P1', got {v!r}")
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ValueError(f"PoreFluidParameters.{f.name} must be a finite number, "
+                                 f"got {v!r}")
+        positive = ("viscosity", "kozeny_carman", "permeability", "grain_diameter")
+        for name in positive:
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ValueError(f"PoreFluidParameters.{name} must be > 0, got {v!r}")
+        for name in ("compressibility", "density"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"PoreFluidParameters.{name} must be >= 0, got "
+                                 f"{getattr(self, name)!r}")
+        if not 0 < self.porosity_min < self.porosity_max < 1:
+            raise ValueError(f"PoreFluidParameters.porosity_min/porosity_max must satisfy "
+                             f"0 < min < max < 1, got {self.porosity_min!r}, "
+                             f"{self.porosity_max!r}")
+        if self.pressure_degree not in (1, 2):
+            raise ValueError(f"PoreFluidParameters.pressure_degree must be 1 or 2, got "
+                             f"{self.pressure_degree!r}")
+
+
+def kozeny_carman(n, d: float, C: float = 180.0):
+    """Kozeny-Carman permeability ``k = d^2 n^3 / (C (1 - n)^2)`` [m^2] of porosity n (numbers,
+    arrays or UFL), grain diameter d [m] and constant C."""
+    return d**2 * n**3 / (C * (1 - n) ** 2)
+
+
+def grain_volumes(radius: np.ndarray, dim: int) -> np.ndarray:
+    """Volumes [m^3] of spheres (dim 3) or areas [m^2] of disks of unit thickness (dim 2)."""
+    r = np.asarray(radius, dtype=float)
+    return math.pi * r**2 if dim == 2 else 4.0 / 3.0 * math.pi * r**3
+
+
+class DarcyFlow:
+    """The pore pressure of a Darcy fluid through the grains of a DEM run, and its forces.
+
+    Args:
+        domain: a dolfinx mesh (triangles/tetrahedra or quads/hexes) covering every grain.
+        sim: the `dem.Simulation` (held whole on every rank); its ``gravity`` sets buoyancy.
+        params: :class:`PoreFluidParameters`.
+        facet_tags, tag_names: named boundaries (physical-group names -> tag values).
+        petsc_options: overrides of the direct (MUMPS LU) linear solve.
+
+    Boundaries are undrained (no flux) unless :meth:`pressure`, :meth:`drained` or
+    :meth:`flux` say otherwise. :meth:`step` solves one fluid step and applies the forces;
+    :meth:`advance` alternates fluid steps and DEM steps.
+
+    The coupling is explicit (the forces are held over the DEM steps of a fluid step), and
+    the fluid acts on the grains as a drag with the relaxation time ``rho_s (1 - n) k / mu_f``:
+    a fluid step much longer than that (in the tightest cell, so mind ``porosity_min``) is
+    unstable. Nothing checks this yet.
+    """
+
+    def __init__(self, domain: _mesh.Mesh, sim, params: PoreFluidParameters | None = None, *,
+                 facet_tags: _mesh.MeshTags | None = None, tag_names: dict | None = None,
+                 petsc_options: dict | None = None):
+        self.params = params = params or PoreFluidParameters()
+        if not isinstance(params, PoreFluidParameters):
+            raise TypeError(f"params must be PoreFluidParameters, got {type(params).__name__}")
+        self.domain, self.sim = domain, sim
+        gdim = domain.geometry.dim
+        if sim.p.dim != gdim:
+            raise ValueError(f"a {gdim}D mesh for {sim.p.dim}D grains")
+        self.facet_tags, self.tag_names = facet_tags, dict(tag_names or {})
+        self.volume = grain_volumes(sim.p.radius, sim.p.dim)
+        self.d = params.grain_diameter or self._sauter_diameter()
+        cell = domain.basix_cell()
+        fam, deg = ("DG", 0) if params.porosity_space == "DG0" else ("Lagrange", 1)
+        pdeg = params.pressure_degree
+        self._spaces = {"n": _GrainSpace(domain, basix.ufl.element(fam, cell, deg)),
+                        "v": _GrainSpace(domain, basix.ufl.element(fam, cell, deg,
+                                                                   shape=(gdim,)))}
+        self._spaces["g"] = self._spaces["v"] if (fam, deg) == ("DG", pdeg - 1) else \
+            _GrainSpace(domain, basix.ufl.element("DG", cell, pdeg - 1, shape=(gdim,)))
+        self.Vn, self.Vv, self.Vg = (self._spaces[k].V for k in "nvg")
+        self.Vp = fem.functionspace(domain, basix.ufl.element("Lagrange", cell, pdeg))
+        self.porosity = fem.Function(self.Vn, name="porosity")
+        self.velocity = fem.Function(self.Vv, name="grain_velocity")
+        self.p = fem.Function(self.Vp, name="pore_pressure")
+        self.p_old = fem.Function(self.Vp)
+        self.grad_p = fem.Function(self.Vg)
+        self._grad_expr = fem.Expression(ufl.grad(self.p),
+                                         self.Vg.element.interpolation_points)
+        self.lumped_mass = self._lumped_mass(self.Vn)  #: int N_a dx of the local dofs of Vn
+        self._storage = fem.Constant(domain, default_scalar_type(0.0))  # beta_f / dt
+        self.bcs: list = []
+        self._neumann: list = []
+        self._problem = None
+        self._petsc = {"ksp_type": "preonly", "pc_type": "lu",
+                       "pc_factor_mat_solver_type": "mumps", **(petsc_options or {})}
+        self._mine = None   # global rows of the grains this rank evaluates
+        self.forces = np.zeros((sim.p.n, 3))  #: the fluid's force on every grain [N] (last step)
+        #: other forces [N] (n, 3) handed to the DEM with the fluid's (e.g. a surcharge):
+        #: `dem.Simulation.set_external_force` holds one set, which :meth:`apply_forces` sets
+        self.extra_force: np.ndarray | None = None
+        self.t = 0.0
+        self.grains_to_mesh()
+        self.porosity.x.array[:] = 1.0 - self._solid_fraction()
+        self._clip_porosity()
+
+    # ---- grains -> mesh ----------------------------------------------------------------
+    def _sauter_diameter(self) -> float:
+        r, dim = self.sim.p.radius, self.sim.p.dim
+        surface = 2 * math.pi * r if dim == 2 else 4 * math.pi * r**2
+        return float(2 * dim * self.volume.sum() / surface.sum())
+
+    def _lumped_mass(self, V) -> np.ndarray:
+        """The integrals int N_a dx of every local dof of the scalar space V (owned, ghost)."""
+        m = fem.Function(V)
+        vec = assemble_vector(fem.form(ufl.TestFunction(V) * ufl.dx))
+        vec.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        m.x.petsc_vec.array_w[:] = vec.array_r
+        vec.destroy()
+        m.x.scatter_forward()
+        return m.x.array.copy()
+
+    def grains_to_mesh(self) -> None:
+        """Locate the grains again and evaluate the bases at their centroids (collective).
+        While every grain stays in its rank's cells only the moved ones are searched for, once
+        for all the spaces; if one left them (another rank's cells, or the mesh) the grains
+        are shared out anew (:func:`coupling.locate.owner_ranks` names those outside)."""
+        x = self.sim.p.x[:, : self.domain.geometry.dim]
+        if self._mine is not None:
+            mine = self._mine
+            cells, X, changed, lost = relocate(self.domain, x[mine], self._spaces["n"].basis.cells)
+            if self.domain.comm.allreduce(int(lost.sum())) == 0:
+                for space in self._unique_spaces():
+                    space.basis.update(x[mine], located=(cells, X, changed))
+                return
+        owners = owner_ranks(self.domain, x)
+        self._mine = np.flatnonzero(owners == self.domain.comm.rank)
+        for space in self._unique_spaces():
+            space.build(x[self._mine])
+
+    def _unique_spaces(self):
+        seen = []
+        for s in self._spaces.values():
+            if all(s is not t for t in seen):
+                seen.append(s)
+        return seen
+
+    def _solid_fraction(self) -> np.ndarray:
+        """Lumped-mass projection sum_i V_i N_a(x_i) / int N_a of the local dofs of Vn."""
+        f = fem.Function(self.Vn)
+        self._spaces["n"].sum_to(self.volume[self._mine], f)
+        return f.x.array / self.lumped_mass
+
+    def _clip_porosity(self) -> None:
+        a = self.porosity.x.array
+        np.clip(a, self.params.porosity_min, self.params.porosity_max, out=a)
+
+    def _mean_velocity(self) -> None:
+        """v_s = sum V_i v_i N_a / sum V_i N_a (0 where no grain is near)."""
+        gdim = self.domain.geometry.dim
+        p, mine, space = self.sim.p, self._mine, self._spaces["v"]
+        vol = self.volume[mine]
+        num, den = fem.Function(self.Vv), fem.Function(self.Vv)
+        space.sum_to(vol[:, None] * p.v[mine, :gdim], num)
+        space.sum_to(np.repeat(vol[:, None], gdim, axis=1), den)
+        d = den.x.array
+        self.velocity.x.array[:] = np.divide(num.x.array, d, out=np.zeros_like(d), where=d > 0)
+
+    def update_from_grains(self) -> None:
+        """Porosity and mean grain velocity on the mesh from the grains now (collective). The
+        grains keep their number and radii (volumes are taken once)."""
+        self.grains_to_mesh()
+        self.porosity.x.array[:] = 1.0 - self._solid_fraction()
+        self._clip_porosity()
+        self._mean_velocity()
+
+    def solid_volume(self) -> float:
+        """The grains' volume sum V_i [m^3] (= int (1 - n) dx before clipping)."""
+        return self.domain.comm.allreduce(float(self.volume[self._mine].sum()))
+
+    # ---- boundaries ----------------------------------------------------------------------
+    def facets(self, where: Where) -> np.ndarray:
+        """Local boundary facets of a named group, a tag value, or a locator ``x -> bool``."""
+        fdim = self.domain.topology.dim - 1
+        if callable(where):
+            return _mesh.locate_entities_boundary(self.domain, fdim, where)
+        if isinstance(where, str):
+            if where not in self.tag_names:
+                raise ValueError(f"boundary {where!r} is not a named group; known names: "
+                                 f"{sorted(self.tag_names) or 'none'}")
+            where = self.tag_names[where]
+        if self.facet_tags is None:
+            raise ValueError(f"boundary tag {where!r} given but no facet_tags")
+        return self.facet_tags.find(int(where))
+
+    def pressure(self, where: Where, value: float = 0.0) -> fem.Constant:
+        """Prescribed pore pressure (deviation from hydrostatic) [Pa] on a boundary; returns
+        the constant holding it (set ``.value`` between steps)."""
+        holder = fem.Constant(self.domain, default_scalar_type(_finite("pressure", value)))
+        fdim = self.domain.topology.dim - 1
+        dofs = fem.locate_dofs_topological(self.Vp, fdim, self.facets(where))
+        self.bcs.append(fem.dirichletbc(holder, dofs, self.Vp))
+        self._problem = None
+        return holder
+
+    def drained(self, where: Where) -> fem.Constant:
+        """A drained boundary: p = 0 (hydrostatic)."""
+        return self.pressure(where, 0.0)
+
+    def flux(self, where: Where, value: float = 0.0) -> fem.Constant:
+        """Prescribed fluid inflow [m/s] (volume per area and time, into the domain) on a
+        boundary; returns the constant holding it."""
+        holder = fem.Constant(self.domain, default_scalar_type(_finite("flux", value)))
+        facets = self.facets(where)
+        tag = len(self._neumann) + 1
+        self._neumann.append((facets, tag, holder))
+        self._problem = None
+        return holder
+
+    # ---- solve ---------------------------------------------------------------------------
+    def permeability(self):
+        """The permeability k [m^2]: a UFL expression of the porosity, or the constant."""
+        prm = self.params
+        if prm.permeability is not None:
+            return fem.Constant(self.domain, default_scalar_type(prm.permeability))
+        return kozeny_carman(self.porosity, self.d, prm.kozeny_carman)
+
+    def _forms(self):
+        p, q = ufl.TrialFunction(self.Vp), ufl.TestFunction(self.Vp)
+        k_mu = self.permeability() / self.params.viscosity
+        n, s = self.porosity, self._storage
+        a = s * n * p * q * ufl.dx + k_mu * ufl.inner(ufl.grad(p), ufl.grad(q)) * ufl.dx
+        L = s * n * self.p_old * q * ufl.dx + ufl.inner(self.velocity, ufl.grad(q)) * ufl.dx
+        ds = self._ds()
+        for _, tag, g in self._neumann:
+            L += g * q * ds(tag)
+        return a, L
+
+    def _ds(self):
+        if not self._neumann:
+            return ufl.ds
+        fdim = self.domain.topology.dim - 1
+        ent = np.concatenate([f for f, _, _ in self._neumann]).astype(np.int32)
+        val = np.concatenate([np.full(len(f), t, np.int32) for f, t, _ in self._neumann])
+        order = np.argsort(ent, kind="stable")
+        tags = _mesh.meshtags(self.domain, fdim, ent[order], val[order])
+        return ufl.Measure("ds", domain=self.domain, subdomain_data=tags)
+
+    def _residual_form(self):
+        """The mass balance tested with q: at a boundary's dofs, the inflow there."""
+        q = ufl.TestFunction(self.Vp)
+        k_mu = self.permeability() / self.params.viscosity
+        r = (self._storage * self.porosity * (self.p - self.p_old) * q
+             + ufl.inner(k_mu * ufl.grad(self.p) - self.velocity, ufl.grad(q))) * ufl.dx
+        ds = self._ds()
+        for _, tag, g in self._neumann:
+            r -= g * q * ds(tag)
+        return fem.form(r)
+
+    def solve(self, dt: float | None = None) -> fem.Function:
+        """The pressure after a backward-Euler step of ``dt`` [s] from the last one, with the
+        grains as they are now (``dt=None`` or ``compressibility = 0``: steady). Does not
+        touch the grains' forces. Collective."""
+        if dt is not None and not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt (fluid time step) must be > 0 s, got {dt!r}")
+        steady = dt is None or self.params.compressibility == 0
+        if steady and not self.domain.comm.allreduce(int(any(len(bc.dof_indices()[0])
+                                                             for bc in self.bcs)), op=MPI.MAX):
+            raise ValueError("a steady (incompressible) pore fluid needs a pressure boundary "
+                             "(drained or prescribed): with flux boundaries only p is not "
+                             "determined")
+        self.update_from_grains()
+        self.p_old.x.array[:] = self.p.x.array
+        self._storage.value = 0.0 if steady else self.params.compressibility / dt
+        if self._problem is None:
+            a, L = self._forms()
+            self._problem = LinearProblem(a, L, bcs=self.bcs, u=self.p,
+                                          petsc_options_prefix=f"granfe_darcy_{id(self)}_",
+                                          petsc_options=self._petsc)
+            self._residual = self._residual_form()
+        self._problem.solve()
+        check_ksp_converged(self._problem.solver, "pore fluid")
+        self.p.x.scatter_forward()
+        if dt is not None:
+            self.t += dt
+        return self.p
+
+    def inflow(self, where: Where) -> float:
+        """Fluid volume rate entering through a boundary in the last solve [m^3/s; m^2/s in
+        2D]: the mass balance's residual at the boundary's pressure dofs (conservative: the
+        inflows of all boundaries sum to the storage change and the grains' source)."""
+        vec = assemble_vector(self._residual)
+        vec.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        fdim = self.domain.topology.dim - 1
+        dofs = fem.locate_dofs_topological(self.Vp, fdim, self.facets(where))
+        owned = dofs[dofs < self.Vp.dofmap.index_map.size_local]
+        total = float(vec.array_r[owned].sum())
+        vec.destroy()
+        return self.domain.comm.allreduce(total)
+
+    # ---- mesh -> grains -------------------------------------------------------------------
+    def grain_forces(self) -> np.ndarray:
+        """The fluid's force on every grain (n, 3) [N] from the last solve: Darcy
+        ``-V grad p / (1 - n)`` plus buoyancy ``-rho_f V g`` (the same on every rank)."""
+        gdim = self.domain.geometry.dim
+        self.grad_p.interpolate(self._grad_expr)
+        mine = self._mine
+        grad = self._spaces["g"].at_grains(self.grad_p)
+        n = self._spaces["n"].at_grains(self.porosity)[:, 0]
+        f = np.zeros((self.sim.p.n, 3))
+        f[mine, :gdim] = -self.volume[mine, None] * grad / (1.0 - n[:, None])
+        f = self.domain.comm.allreduce(f)   # each grain on one rank: an exact sum
+        f -= self.params.density * self.volume[:, None] * self.sim.gravity[None, :]
+        return f
+
+    def apply_forces(self) -> None:
+        """Hand the fluid's forces (plus :attr:`extra_force`) to the DEM, constant until the
+        next call."""
+        self.forces = self.grain_forces()
+        total = self.forces if self.extra_force is None else self.forces + self.extra_force
+        free = np.flatnonzero(self.sim.p.kind == FREE)
+        self.sim.set_external_force(free, total[free])
+
+    def step(self, dt: float | None) -> fem.Function:
+        """One fluid step of ``dt`` [s] (None: steady) at the grains' state now, then its
+        forces to the grains. Collective."""
+        self.solve(dt)
+        self.apply_forces()
+        return self.p
+
+    def advance(self, dem_steps: int, every: int) -> None:
+        """``dem_steps`` DEM steps, a fluid step of ``every`` DEM steps before each block."""
+        if not (int(every) >= 1 and int(dem_steps) >= 0):
+            raise ValueError(f"every must be >= 1 and dem_steps >= 0, got {every!r}, "
+                             f"{dem_steps!r}")
+        done = 0
+        while done < dem_steps:
+            m = min(int(every), dem_steps - done)
+            self.step(m * self.sim.dt)
+            self.sim.step(m)
+            done += m
+
+
+class _GrainSpace:
+    """A DG0/P1/DG space whose basis is evaluated at the grains' centroids.
+
+    :class:`FieldBasis` evaluates a field of a mixed space, so the space is the one field of
+    a one-field mixed space: ``V`` (its collapse) carries the Functions used in forms,
+    ``parent`` maps its local dofs into the wrapper's."""
+
+    def __init__(self, domain, element):
+        self.W = fem.functionspace(domain, basix.ufl.mixed_element([element]))
+        self.V, parent = self.W.sub(0).collapse()
+        self.parent = np.asarray(parent[0] if isinstance(parent, list) else parent)
+        self.basis: FieldBasis | None = None
+        self._w = fem.Function(self.W)
+
+    def build(self, points: np.ndarray) -> None:
+        if self.basis is not None:
+            self.basis.matrix.destroy()
+        self.basis = FieldBasis.build(self.W, points, sub=0)
+
+    def sum_to(self, values: np.ndarray, out: fem.Function) -> None:
+        """``out = N^T values``: per dof, the sum over the grains of all ranks of their
+        values (n, value_size) times the basis function at their centroid. Collective."""
+        vec = self.basis.matrix.createVecLeft()
+        vec.setArray(np.ascontiguousarray(values, dtype=float).ravel())
+        self.basis.matrix.multTranspose(vec, self._w.x.petsc_vec)
+        vec.destroy()
+        self._w.x.scatter_forward()
+        out.x.array[:] = self._w.x.array[self.parent]
+
+    def at_grains(self, u: fem.Function) -> np.ndarray:
+        """Values (n, value_size) of ``u`` (a Function on :attr:`V`) at this rank's grains."""
+        self._w.x.array[self.parent] = u.x.array
+        return self.basis.interpolate(self._w)
+
+
+def _finite(name: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{name} value must be a finite number, got {value!r}")
+    return float(value)
