@@ -41,9 +41,13 @@ class _FieldLayout:
     the global column of every local parent dof."""
 
     def __init__(self, V: dolfinx.fem.FunctionSpace, sub: int | None):
-        Vs = V if sub is None else V.sub(sub)
-        self.Vc, parent = Vs.collapse()
-        self.parent = np.asarray(parent[0] if isinstance(parent, list) else parent, dtype=np.int64)
+        if sub is None:      # a plain (not mixed) space is its own collapsed space
+            self.Vc = V
+            imap = V.dofmap.index_map
+            self.parent = np.arange((imap.size_local + imap.num_ghosts) * V.dofmap.bs, dtype=np.int64)
+        else:
+            self.Vc, parent = V.sub(sub).collapse()
+            self.parent = np.asarray(parent[0] if isinstance(parent, list) else parent, dtype=np.int64)
         if self.Vc.element.needs_dof_transformations:
             raise NotImplementedError(
                 "FieldBasis supports elements without dof transformations (Lagrange up to P2)"

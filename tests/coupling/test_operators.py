@@ -75,6 +75,22 @@ def test_interpolation_matches_function_eval(sub, value_size):
     assert np.allclose(y.getArray(), q.ravel(), atol=1e-13)
 
 
+@pytest.mark.mpi
+@pytest.mark.parametrize("shape", [(), (2,)])
+def test_plain_space_is_its_own_field(shape):
+    """sub = None: the basis of a plain (not mixed) space, as the pore fluid's porosity uses."""
+    msh = mesh.create_unit_square(MPI.COMM_WORLD, 4, 4, diagonal=mesh.DiagonalType.crossed)
+    V = fem.functionspace(msh, ("Lagrange", 2, shape))
+    w = fem.Function(V)
+    w.interpolate(lambda x: np.sin(3 * x[0]) * x[1] if shape == () else
+                  np.vstack([np.sin(3 * x[0]) * x[1], np.exp(x[0] - x[1])]))
+    w.x.scatter_forward()
+    pts, _ = my_points(V, all_points())
+    q = FieldBasis.build(V, pts).interpolate(w)
+    ref = eval_at(w, V, pts).reshape(q.shape)
+    assert np.allclose(q, ref, rtol=0, atol=1e-12)
+
+
 def prescribed_dofs(basis, xmin):
     """Owned dofs of the field whose node lies at x >= xmin (the prescribed overlap nodes)."""
     imap, bs = basis.V.dofmap.index_map, basis.V.dofmap.bs
