@@ -93,8 +93,9 @@ class GeneralizedAlpha:
         self._snes = problem.snes_problem(F, prefix or problem.prefix + "dyn_")
         problem.petsc_options = saved
         self._affine = _AffineStep.build(self, F, L)
-        self._kinetic = fem.form(model.kinetic_energy(problem.split(self.v)) * problem.dx)
-        self._elastic = fem.form(model.stored_energy(problem.split(w), state) * problem.dx)
+        jit = problem.jit_options
+        self._kinetic = fem.form(model.kinetic_energy(problem.split(self.v)) * problem.dx, jit_options=jit)
+        self._elastic = fem.form(model.stored_energy(problem.split(w), state) * problem.dx, jit_options=jit)
         self._weighted: dict = {}
 
     def initialize_acceleration(self) -> None:
@@ -174,8 +175,9 @@ class GeneralizedAlpha:
             if key not in self._weighted:
                 p = self.problem
                 self._weighted[key] = (
-                    fem.form(weight * p.model.kinetic_energy(p.split(self.v)) * p.dx),
-                    fem.form(weight * p.model.stored_energy(p.split(p.w), p.state.committed) * p.dx))
+                    fem.form(weight * p.model.kinetic_energy(p.split(self.v)) * p.dx, jit_options=p.jit_options),
+                    fem.form(weight * p.model.stored_energy(p.split(p.w), p.state.committed) * p.dx,
+                             jit_options=p.jit_options))
             forms = self._weighted[key]
         return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in forms)
 
@@ -225,11 +227,12 @@ class _AffineStep:
         trial, dw = ufl.TrialFunctions(V), ufl.TestFunctions(V)
         m_ufl = model.inertia_work(trial, dw) * problem.dx
         k_ufl = model.internal_work(trial, dw, problem.state.committed) * problem.dx
-        self._m, self._k = fem.form(m_ufl), fem.form(k_ufl)
+        self._m, self._k = (fem.form(m_ufl, jit_options=problem.jit_options),
+                            fem.form(k_ufl, jit_options=problem.jit_options))
         self._matrix_constants = list({id(x): x for x in (*m_ufl.constants(), *k_ufl.constants(),
                                                            stepper.dt)}.values())
         self._l_ufl = L if L != 0 else None
-        self._l = None if self._l_ufl is None else fem.form(L)
+        self._l = None if self._l_ufl is None else fem.form(L, jit_options=problem.jit_options)
         self._l_constants = [] if self._l_ufl is None else list(self._l_ufl.constants())
         self._l_varies = self._l_ufl is not None and len(self._l_ufl.coefficients()) > 0
         self._matrix_key = self._l_key = None

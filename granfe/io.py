@@ -50,11 +50,13 @@ class ContinuumWriter:
                 S = fem.functionspace(domain, ("Discontinuous Lagrange", 0, shape))
                 Q = fem.functionspace(domain, basix.ufl.quadrature_element(
                     domain.basix_cell(), value_shape=shape, degree=problem.state.degree))
-                self._stress_exprs[sname] = (fem.Expression(expr, Q.element.interpolation_points),
+                self._stress_exprs[sname] = (fem.Expression(expr, Q.element.interpolation_points,
+                                                            jit_options=problem.jit_options),
                                              fem.Function(Q))
             else:
                 S = fem.functionspace(domain, ("Discontinuous Lagrange", max(k - 1, 1), shape))
-                self._stress_exprs[sname] = (fem.Expression(expr, S.element.interpolation_points), None)
+                self._stress_exprs[sname] = (fem.Expression(expr, S.element.interpolation_points,
+                                                            jit_options=problem.jit_options), None)
             self.stresses[sname] = fem.Function(S, name=sname)
         self.state = {}
         for sname, q in problem.state.committed.items():

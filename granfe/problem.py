@@ -91,7 +91,8 @@ class ContinuumProblem:
         qdeg = 2 * max(self.degree) if quadrature_degree is None else quadrature_degree
         self.state = QuadratureState(domain, model.state_variables(self.gdim), qdeg)
         if self.state:
-            self.state.bind(model.state_update(split(self.w, self.fields), self.state.committed))
+            self.state.bind(model.state_update(split(self.w, self.fields), self.state.committed),
+                            jit_options=self.jit_options)
             self.dx = self.state.dx
         else:
             self.dx = ufl.Measure("dx", domain=domain)
@@ -355,7 +356,7 @@ class ContinuumProblem:
         once, against the mode restricted to the boundary's dofs). Collective."""
         from dolfinx.fem.petsc import assemble_vector
 
-        b = assemble_vector(fem.form(self.residual()))
+        b = assemble_vector(fem.form(self.residual(), jit_options=self.jit_options))
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         n = self.V.dofmap.index_map.size_local * self.V.dofmap.index_map_bs
         r = b.array_r[:n].copy()
@@ -406,7 +407,12 @@ class ContinuumProblem:
         if self.solver_kind == "iterative":
             nullspace = rigid_modes_nullspace(self.V, self.model.rigid_modes(self.gdim))
         return make_snes_problem(F, self.w, self.bcs, prefix, self.petsc_options,
-                                 near_nullspace=nullspace)
+                                 near_nullspace=nullspace, jit_options=self.jit_options)
+
+    @property
+    def jit_options(self) -> dict | None:
+        """The model's JIT options for forms and expressions of this problem (None: dolfinx's)."""
+        return dict(self.model.jit_options) or None
 
     def solve(self, commit: bool = True) -> int:
         """Solve for ``self.w``; return SNES iterations; on failure restore the last good

@@ -84,14 +84,16 @@ class SolveDidNotConverge(RuntimeError):
 
 
 def make_snes_problem(F, w: fem.Function, bcs, prefix: str, options: dict | None,
-                      J=None, near_nullspace: PETSc.NullSpace | None = None) -> NonlinearProblem:
+                      J=None, near_nullspace: PETSc.NullSpace | None = None,
+                      jit_options: dict | None = None) -> NonlinearProblem:
     """A ``NonlinearProblem`` with ``DIRECT`` options updated by ``options``."""
     opts = dict(DIRECT)
     if options:
         opts.update(options)
     if opts.get("pc_type") not in ("lu", "cholesky"):
         opts.pop("pc_factor_mat_solver_type", None)
-    problem = NonlinearProblem(F, w, bcs=bcs, J=J, petsc_options_prefix=prefix, petsc_options=opts)
+    problem = NonlinearProblem(F, w, bcs=bcs, J=J, petsc_options_prefix=prefix, petsc_options=opts,
+                               jit_options=jit_options)
     if near_nullspace is not None:
         problem.A.setNearNullSpace(near_nullspace)
     return problem

@@ -51,14 +51,15 @@ class QuadratureState:
     def __bool__(self) -> bool:
         return bool(self.committed)
 
-    def bind(self, trial: dict) -> None:
+    def bind(self, trial: dict, jit_options: dict | None = None) -> None:
         """The UFL expressions of the trial state (from the model's ``state_update``)."""
         if set(trial) != set(self.committed):
             raise ValueError(f"state_update returns {sorted(trial)}, the model declares "
                              f"{sorted(self.committed)}")
         for name, expr in trial.items():
             Q = self.trial[name].function_space
-            self._expressions[name] = fem.Expression(expr, Q.element.interpolation_points)
+            self._expressions[name] = fem.Expression(expr, Q.element.interpolation_points,
+                                                     jit_options=jit_options)
 
     def evaluate(self) -> None:
         """The trial state of the current fields, at every quadrature point (collective)."""

@@ -28,6 +28,7 @@ DEMOS = [
     ("demos/2d/cpt_moving_window.py", False),
     ("demos/3d/pile_penetration_stress.py", False),
     ("demos/3d/cavity_expansion_stress.py", False),
+    ("demos/3d/micromorphic_uniaxial.py", False),
 ]
 DEMOS += [(str(p.relative_to(ROOT)), True) for p in sorted((ROOT / "demos" / "1d").glob("*.py"))]
 

@@ -7,11 +7,12 @@ subclass (and its material dataclass), plus one row in :data:`MODELS`.
 from granfe.models.base import ContinuumModel, Field
 from granfe.models.drucker_prager import MicropolarDruckerPrager
 from granfe.models.micromorphic import Micromorphic
+from granfe.models.micromorphic_finite import MicromorphicFiniteStrain
 from granfe.models.micropolar import Micropolar
 from granfe.models.poroelastic import MicropolarPoroelastic, Poroelastic
 from granfe.models.strain_memory import StrainMemory
 
-__all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micromorphic",
+__all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micromorphic", "MicromorphicFiniteStrain",
            "Micropolar", "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "StrainMemory"]
 
 MODELS: dict[str, type[ContinuumModel]] = {
@@ -19,6 +20,7 @@ MODELS: dict[str, type[ContinuumModel]] = {
     StrainMemory.name: StrainMemory,
     MicropolarDruckerPrager.name: MicropolarDruckerPrager,
     Micromorphic.name: Micromorphic,
+    MicromorphicFiniteStrain.name: MicromorphicFiniteStrain,
     Poroelastic.name: Poroelastic,
     MicropolarPoroelastic.name: MicropolarPoroelastic,
 }

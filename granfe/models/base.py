@@ -57,6 +57,9 @@ class ContinuumModel:
     material_type: ClassVar[type] = object
     #: PETSc options the model's residual needs (a problem's own options override them)
     solver_options: ClassVar[dict] = {}
+    #: dolfinx JIT options for the model's forms and expressions (e.g. lower C optimisation
+    #: for a very long kernel: gcc -O2 needs minutes on a dense finite-strain Hessian)
+    jit_options: ClassVar[dict] = {}
 
     def __init__(self, material):
         if not isinstance(material, self.material_type):
