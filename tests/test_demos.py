@@ -29,6 +29,7 @@ DEMOS = [
     ("demos/3d/pile_penetration_stress.py", False),
     ("demos/3d/cavity_expansion_stress.py", False),
     ("demos/3d/micromorphic_uniaxial.py", False),
+    ("demos/3d/seed004_stress_paths.py", False),
 ]
 DEMOS += [(str(p.relative_to(ROOT)), True) for p in sorted((ROOT / "demos" / "1d").glob("*.py"))]
 
