@@ -144,10 +144,17 @@ def worker(path: Path) -> None:
         failed = {"depth": model.depth, "message": str(err), "wall_time": time.perf_counter() - t1}
         prm = replace(prm, interface="iqn-ils")
         model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
-        history = model.run()
+        try:
+            history = model.run()
+        except CouplingUnstable as err:
+            # both exchanges diverged: the packing is recorded as stopped, with its profile
+            # up to there (it counts in no error)
+            failed["iterated"] = {"depth": model.depth, "message": str(err)}
+            history = model.history
     t2 = time.perf_counter()
     out = {"grains": int(model.n_grains), "setup_s": t1 - t0, "push_s": t2 - t1,
            "interface": prm.interface, "loose_exchange_failed": failed,
+           "stopped": bool(failed and "iterated" in failed),
            "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
            "dem_steps": int(model.sim.nsteps), "dt": float(model.sim.dt),
            "depth": [h["depth"] for h in history], "q_c": [h["q_c"] for h in history],
@@ -247,7 +254,14 @@ def compare(bc: str) -> dict:
     cases = []
     for constants, continuum, window in [(k, c, w) for k in args.constants for c in args.continuum
                                          for w in args.windows]:
-        runs = [run_case(bc, s, window, continuum, constants) for s in seeds]
+        tried = [run_case(bc, s, window, continuum, constants) for s in seeds]
+        runs = [r for r in tried if not r.get("stopped")]
+        if not runs:
+            cases.append({"window_half_width": window, "continuum": continuum, "constants": constants,
+                          "stopped_packings": len(tried), "runs": tried})
+            print(f"{bc} window {window * 100:.1f} cm, {continuum}, {constants} constants: every "
+                  "packing stopped (both exchanges diverged)", flush=True)
+            continue
         q = np.mean([smoothed(r, "q_c", grid) for r in runs], axis=0)
         total = float(np.mean([r["setup_s"] + r["push_s"] for r in runs]))
         push = float(np.mean([r["push_s"] for r in runs]))
@@ -266,7 +280,8 @@ def compare(bc: str) -> dict:
                 "f_s_mean": np.mean([smoothed(r, "f_s", grid) for r in runs], axis=0).tolist(),
                 "split_s_mean": {k: float(np.mean([r["split_s"][k] for r in runs])) for k in runs[0]["split_s"]},
                 "calibration": runs[0].get("calibration"),
-                "runs": runs}
+                "stopped_packings": len(tried) - len(runs),
+                "runs": tried}
         case["within_reference_scatter"] = case["q_c_rms_error"] <= reference["one_packing_rms_vs_average"]
         cases.append(case)
         print(f"{bc} window {window * 100:.1f} cm, {continuum}, {constants} constants: {case['grains']} grains, "
@@ -291,7 +306,7 @@ def plot(results: dict) -> None:
         ref, std = np.array(r["full_dem"]["q_c_mean"]) / 1e3, np.array(r["full_dem"]["q_c_std"]) / 1e3
         ax.fill_betweenx(d, ref - std, ref + std, color="0.85", label="full DEM, +-1 std over packings")
         ax.plot(ref, d, "k", lw=2, label=f"full DEM ({r['full_dem']['grains']} grains)")
-        for c in r["coupled"]:
+        for c in (c for c in r["coupled"] if "q_c_mean" in c):
             plastic = " plastic" if c.get("continuum", "micropolar") != "micropolar" else ""
             calibrated = c.get("constants", "lattice") == "calibrated"
             ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-", lw=2 if calibrated else 1,
@@ -312,7 +327,7 @@ def plot(results: dict) -> None:
         for (model, constants), marker in zip(
                 [(m, k) for k in ("lattice", "calibrated") for m in ("micropolar", "micropolar_drucker_prager")],
                 ("o-", "s--", "^-", "D--"), strict=True):
-            pts = [c for c in r["coupled"] if c.get("continuum", "micropolar") == model
+            pts = [c for c in r["coupled"] if "q_c_rms_error" in c and c.get("continuum", "micropolar") == model
                    and c.get("constants", "lattice") == constants]
             if pts:
                 ax.plot([c["total_s_mean"] for c in pts], [c["q_c_rms_error"] for c in pts], marker, color=color,
@@ -341,7 +356,19 @@ if __name__ == "__main__":
     args.results.mkdir(parents=True, exist_ok=True)
     if args.merge:
         parts = [json.loads(f.read_text()) for f in args.merge]
-        results = dict(parts[0], cases={bc: c for part in parts for bc, c in part["cases"].items()},
+        cases = {}
+
+        def key(x):
+            return x["window_half_width"], x.get("continuum", "micropolar"), x.get("constants", "lattice")
+
+        for part in parts:
+            # a later file's reference replaces an earlier one's; coupled cases are joined, a
+            # later file's replacing an earlier one's of the same window, model and constants
+            for bc, c in part["cases"].items():
+                old = {key(x): x for x in cases.get(bc, {}).get("coupled", [])}
+                old.update({key(x): x for x in c["coupled"]})
+                cases[bc] = dict(c, coupled=sorted(old.values(), key=key))
+        results = dict(parts[0], cases=cases,
                        merged_from=[{"file": str(f), "command": part["command"], "machine": part["machine"],
                                      "wall_time_s": part["wall_time_s"]} for f, part in zip(args.merge, parts,
                                                                                             strict=True)])
