@@ -326,18 +326,24 @@ def plot(results: dict) -> None:
                    label=f"{bc}: one full-DEM packing vs average")
         for (model, constants), marker in zip(
                 [(m, k) for k in ("lattice", "calibrated") for m in ("micropolar", "micropolar_drucker_prager")],
-                ("o-", "s--", "^-", "D--"), strict=True):
+                ("o", "s", "^", "D"), strict=True):
             pts = [c for c in r["coupled"] if "q_c_rms_error" in c and c.get("continuum", "micropolar") == model
                    and c.get("constants", "lattice") == constants]
             if pts:
+                # markers only: run times measured on shared cores are noisier than the
+                # windows' order, so a line through them would zigzag
                 ax.plot([c["total_s_mean"] for c in pts], [c["q_c_rms_error"] for c in pts], marker, color=color,
+                        mfc="none" if constants == "lattice" else color,
                         label=f"{bc}: coupled, {model}, {constants} (seed-averaged)")
+                for c in pts:
+                    ax.annotate(f"{c['window_half_width'] * 100:g}", (c["total_s_mean"], c["q_c_rms_error"]),
+                                fontsize=6, xytext=(3, 3), textcoords="offset points")
         ax.axvline(ref["total_s_mean"], color=color, ls="--", label=f"{bc}: full DEM run time")
     ax.set_xscale("log")
     ax.set_xlabel("run time per packing [s] (set-up + push, one core)")
     ax.set_ylabel("relative RMS error of q_c against the full-DEM average")
     ax.legend(fontsize=7)
-    ax.set_title("error against run time")
+    ax.set_title("error against run time (labels: window half width [cm])")
     fig.tight_layout()
     fig.savefig(args.results / "calibration_chamber.png", dpi=120)
 
