@@ -448,38 +448,29 @@ class DarcyFlow:
 
 
 class _GrainSpace:
-    """A DG0/P1/DG space whose basis is evaluated at the grains' centroids.
-
-    :class:`FieldBasis` evaluates a field of a mixed space, so the space is the one field of
-    a one-field mixed space: ``V`` (its collapse) carries the Functions used in forms,
-    ``parent`` maps its local dofs into the wrapper's."""
+    """A DG0/P1/DG space whose basis is evaluated at the grains' centroids."""
 
     def __init__(self, domain, element):
-        self.W = fem.functionspace(domain, basix.ufl.mixed_element([element]))
-        self.V, parent = self.W.sub(0).collapse()
-        self.parent = np.asarray(parent[0] if isinstance(parent, list) else parent)
+        self.V = fem.functionspace(domain, element)
         self.basis: FieldBasis | None = None
-        self._w = fem.Function(self.W)
 
     def build(self, points: np.ndarray) -> None:
         if self.basis is not None:
             self.basis.matrix.destroy()
-        self.basis = FieldBasis.build(self.W, points, sub=0)
+        self.basis = FieldBasis.build(self.V, points)
 
     def sum_to(self, values: np.ndarray, out: fem.Function) -> None:
         """``out = N^T values``: per dof, the sum over the grains of all ranks of their
         values (n, value_size) times the basis function at their centroid. Collective."""
         vec = self.basis.matrix.createVecLeft()
         vec.setArray(np.ascontiguousarray(values, dtype=float).ravel())
-        self.basis.matrix.multTranspose(vec, self._w.x.petsc_vec)
+        self.basis.matrix.multTranspose(vec, out.x.petsc_vec)
         vec.destroy()
-        self._w.x.scatter_forward()
-        out.x.array[:] = self._w.x.array[self.parent]
+        out.x.scatter_forward()
 
     def at_grains(self, u: fem.Function) -> np.ndarray:
         """Values (n, value_size) of ``u`` (a Function on :attr:`V`) at this rank's grains."""
-        self._w.x.array[self.parent] = u.x.array
-        return self.basis.interpolate(self._w)
+        return self.basis.interpolate(u)
 
 
 def _finite(name: str, value) -> float:
