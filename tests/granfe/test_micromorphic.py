@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import ufl
 from dolfinx import fem, mesh
+from micromorphic_reference import tensors
 
 from granfe.materials import MicropolarMaterial
 from granfe.models.micromorphic import (
@@ -38,33 +39,9 @@ def fix_zero(problem, where, field):
         assert len(bcs) == len(f.components)
 
 
-def _tensors(p, d):
-    """A, B, C, D of Eringen / Tardigrade ``formIsotropicA..D`` as full arrays."""
-    eye = np.eye(d)
-
-    def e2(s):
-        return np.einsum(f"{s[:2]},{s[3:5]}->klmn", eye, eye)
-
-    def e3(s):
-        i, j, k = s.split()
-        return np.einsum(f"{i},{j},{k}->klmnpq", eye, eye, eye)
-
-    sym = e2("km ln") + e2("kn lm")
-    A = p["lam"] * e2("kl mn") + p["mu"] * sym
-    B = ((p["eta"] - p["tau"]) * e2("kl mn") + p["kappa"] * e2("km ln") + p["nu"] * e2("kn lm")
-         - p["sigma"] * sym)
-    D = p["tau"] * e2("kl mn") + p["sigma"] * sym
-    t = [p[f"tau{i}"] for i in range(1, 12)]
-    C = (t[0] * (e3("kl mn pq") + e3("kq lm np")) + t[1] * (e3("kl mp nq") + e3("km lq np"))
-         + t[2] * e3("kl mq np") + t[3] * e3("kn lm pq") + t[4] * (e3("km ln pq") + e3("kp lm nq"))
-         + t[5] * e3("km lp nq") + t[6] * e3("kn lp mq") + t[7] * (e3("kp lq mn") + e3("kq ln mp"))
-         + t[8] * e3("kn lq mp") + t[9] * e3("kp ln mq") + t[10] * e3("kq lp mn"))
-    return A, B, C, D
-
-
 def _energy(grad_u, phi, G, p):
     d = len(grad_u)
-    A, B, C, D = _tensors(p, d)
+    A, B, C, D = tensors(p, d)
     eps, E = (grad_u + grad_u.T) / 2, grad_u.T + phi
     return (np.einsum("ij,ijkl,kl", eps, A, eps) / 2 + np.einsum("ij,ijkl,kl", E, B, E) / 2
             + np.einsum("ijk,ijkpqr,pqr", G, C, G) / 2 + np.einsum("ij,ijkl,kl", eps, D, E))
@@ -86,7 +63,7 @@ def test_tensors_match_tardigrade():
     ``testFormIsotropicA..D``; row-major, 3D)."""
     p = dict(lam=4.0, mu=7.0, eta=3.0, tau=5.0, kappa=6.0, nu=8.0, sigma=4.0,
              **{f"tau{i}": float(i + 1) for i in range(1, 12)})
-    A, B, C, D = _tensors(p, 3)
+    A, B, C, D = tensors(p, 3)
     assert A.reshape(-1)[:13].tolist() == [18, 0, 0, 0, 4, 0, 0, 0, 4, 0, 7, 0, 7]
     assert B.reshape(-1)[:13].tolist() == [4, 0, 0, 0, -2, 0, 0, 0, -2, 0, 2, 0, 4]
     assert D.reshape(-1)[:13].tolist() == [13, 0, 0, 0, 5, 0, 0, 0, 5, 0, 4, 0, 4]
@@ -140,7 +117,7 @@ def test_smith_conditions_equal_positive_definiteness():
     seen = np.zeros((2, 2), dtype=int)
     for _ in range(600):
         p = dict(zip(NAMES, rng.normal(size=18) + shift, strict=True))
-        A, B, C, D = _tensors(p, 3)
+        A, B, C, D = tensors(p, 3)
         K = np.zeros((15, 15))
         K[:6, :6] = np.einsum("aij,ijkl,bkl->ab", S, A, S)
         K[6:, 6:] = np.einsum("aij,ijkl,bkl->ab", Eb, B, Eb)

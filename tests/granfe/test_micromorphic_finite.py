@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import ufl
 from dolfinx import fem, mesh
+from micromorphic_reference import tensors
 
 from granfe.models.micromorphic import Micromorphic, MicromorphicMaterial, micromorphic_stresses
 from granfe.models.micromorphic_finite import (
@@ -41,36 +42,11 @@ def _random_state(rng, d, scale=0.3):
             scale * rng.normal(size=(d, d, d)))
 
 
-def _tensors(p, d):
-    """A, B, C, D of Eringen / Tardigrade ``formIsotropicA..D`` as full arrays (built from
-    Kronecker deltas, independently of the module's contractions)."""
-    eye = np.eye(d)
-
-    def e2(s):
-        return np.einsum(f"{s[:2]},{s[3:5]}->klmn", eye, eye)
-
-    def e3(s):
-        i, j, k = s.split()
-        return np.einsum(f"{i},{j},{k}->klmnpq", eye, eye, eye)
-
-    sym = e2("km ln") + e2("kn lm")
-    A = p["lam"] * e2("kl mn") + p["mu"] * sym
-    B = ((p["eta"] - p["tau"]) * e2("kl mn") + p["kappa"] * e2("km ln") + p["nu"] * e2("kn lm")
-         - p["sigma"] * sym)
-    D = p["tau"] * e2("kl mn") + p["sigma"] * sym
-    t = [p[f"tau{i}"] for i in range(1, 12)]
-    C = (t[0] * (e3("kl mn pq") + e3("kq lm np")) + t[1] * (e3("kl mp nq") + e3("km lq np"))
-         + t[2] * e3("kl mq np") + t[3] * e3("kn lm pq") + t[4] * (e3("km ln pq") + e3("kp lm nq"))
-         + t[5] * e3("km lp nq") + t[6] * e3("kn lp mq") + t[7] * (e3("kp lq mn") + e3("kq ln mp"))
-         + t[8] * e3("kn lq mp") + t[9] * e3("kp ln mq") + t[10] * e3("kq lp mn"))
-    return A, B, C, D
-
-
 def _energy(grad_u, chi, grad_chi, p):
     """psi of the issue: E = (F^T F - I)/2, Etilde = F^T chi - I, Gamma_IJK = F_iI chi_iJ,K,
     psi = E:A:E/2 + Etilde:B:Etilde/2 + Gamma:C:Gamma/2 + E:D:Etilde, with full tensors."""
     d = len(grad_u)
-    A, B, C, D = _tensors(p, d)
+    A, B, C, D = tensors(p, d)
     F = np.eye(d) + grad_u
     E, Et = (F.T @ F - np.eye(d)) / 2, F.T @ chi - np.eye(d)
     G = np.einsum("iI,iJK->IJK", F, grad_chi)
@@ -267,7 +243,7 @@ def _relaxed_svk(p):
     Etilde = -B^-1 D^T E and psi = E:(A - D B^-1 D^T):E/2, an isotropic SVK energy. Returns
     its (lam, mu) and the map E -> Etilde (9 x 9), from the full tensors. B = 0 (chi held):
     A itself."""
-    A, B, _, D = _tensors(p, 3)
+    A, B, _, D = tensors(p, 3)
     A, B, D = A.reshape(9, 9), B.reshape(9, 9), D.reshape(9, 9)
     if not np.any(B):
         return A[0, 4], A[1, 1], np.zeros((9, 9))
