@@ -46,7 +46,6 @@ the sum is exact, so every rank applies the same bits). Nothing here runs unless
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
@@ -63,11 +62,10 @@ from dolfinx.fem.petsc import LinearProblem, assemble_vector
 from coupling.locate import owner_ranks, relocate
 from coupling.operators import FieldBasis
 from dem.state import FREE
+from granfe.problem import Where, boundary_facets
 from granfe.solvers import check_ksp_converged
 
 __all__ = ["DarcyFlow", "PoreFluidParameters", "kozeny_carman", "grain_volumes"]
-
-Where = str | int | Callable
 
 
 @dataclass(frozen=True)
@@ -287,17 +285,7 @@ class DarcyFlow:
     # ---- boundaries ----------------------------------------------------------------------
     def facets(self, where: Where) -> np.ndarray:
         """Local boundary facets of a named group, a tag value, or a locator ``x -> bool``."""
-        fdim = self.domain.topology.dim - 1
-        if callable(where):
-            return _mesh.locate_entities_boundary(self.domain, fdim, where)
-        if isinstance(where, str):
-            if where not in self.tag_names:
-                raise ValueError(f"boundary {where!r} is not a named group; known names: "
-                                 f"{sorted(self.tag_names) or 'none'}")
-            where = self.tag_names[where]
-        if self.facet_tags is None:
-            raise ValueError(f"boundary tag {where!r} given but no facet_tags")
-        return self.facet_tags.find(int(where))
+        return boundary_facets(self.domain, self.facet_tags, self.tag_names, where)
 
     def pressure(self, where: Where, value: float = 0.0) -> fem.Constant:
         """Prescribed pore pressure (deviation from hydrostatic) [Pa] on a boundary; returns

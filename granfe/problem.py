@@ -40,13 +40,40 @@ from granfe.solvers import (
 from granfe.spaces import components, model_space, split, sub_space
 from granfe.state import QuadratureState
 
-__all__ = ["ContinuumProblem", "MicropolarProblem", "MissingBoundary"]
+__all__ = ["ContinuumProblem", "MicropolarProblem", "MissingBoundary", "boundary_facets"]
 
 Where = str | int | Callable[[np.ndarray], np.ndarray]
 
 
 class MissingBoundary(ValueError):
     """A boundary named in a condition is not in the mesh's facet tags."""
+
+
+def boundary_facets(domain, facet_tags, tag_names: dict, where: Where) -> np.ndarray:
+    """Local boundary facet indices of ``where``: a named group of ``tag_names``, a tag value
+    of ``facet_tags``, or a locator ``x -> bool``. Collective for tags (every rank checks the
+    tag exists somewhere); :class:`MissingBoundary` names what is missing."""
+    fdim = domain.topology.dim - 1
+    if callable(where):
+        return _mesh.locate_entities_boundary(domain, fdim, where)
+    if isinstance(where, str):
+        if where not in tag_names:
+            raise MissingBoundary(
+                f"boundary {where!r} is not a physical group of this mesh; "
+                f"known names: {sorted(tag_names) or 'none'}"
+            )
+        tag = tag_names[where]
+    else:
+        tag = int(where)
+    if facet_tags is None:
+        raise MissingBoundary(f"boundary tag {where!r} given but there are no facet_tags")
+    comm = domain.comm
+    present = comm.allreduce(int(np.any(facet_tags.values == tag)), MPI.MAX)
+    if not present:
+        tags = sorted(set(comm.allreduce(list(np.unique(facet_tags.values)), MPI.SUM)))
+        raise MissingBoundary(f"boundary {where!r} (tag {tag}) has no facets in the mesh's "
+                              f"facet tags; tags present: {tags}")
+    return facet_tags.find(tag)
 
 
 class ContinuumProblem:
@@ -131,27 +158,7 @@ class ContinuumProblem:
     # ---- where ------------------------------------------------------------------------
     def facets(self, where: Where) -> np.ndarray:
         """Local boundary facet indices of a named group, a tag value, or a locator."""
-        fdim = self.domain.topology.dim - 1
-        if callable(where):
-            return _mesh.locate_entities_boundary(self.domain, fdim, where)
-        if isinstance(where, str):
-            if where not in self.tag_names:
-                raise MissingBoundary(
-                    f"boundary {where!r} is not a physical group of this mesh; "
-                    f"known names: {sorted(self.tag_names) or 'none'}"
-                )
-            tag = self.tag_names[where]
-        else:
-            tag = int(where)
-        if self.facet_tags is None:
-            raise MissingBoundary(f"boundary tag {where!r} given but the problem has no facet_tags")
-        comm = self.domain.comm
-        present = comm.allreduce(int(np.any(self.facet_tags.values == tag)), MPI.MAX)
-        if not present:
-            tags = sorted(set(comm.allreduce(list(np.unique(self.facet_tags.values)), MPI.SUM)))
-            raise MissingBoundary(f"boundary {where!r} (tag {tag}) has no facets in the mesh's "
-                                  f"facet tags; tags present: {tags}")
-        return self.facet_tags.find(tag)
+        return boundary_facets(self.domain, self.facet_tags, self.tag_names, where)
 
     # ---- conditions -------------------------------------------------------------------
     def _constant(self, value, shape):

@@ -221,7 +221,7 @@ def test_bad_use_is_named():
         fl.solve()
     with pytest.raises(ValueError, match="dt"):
         fl.solve(0.0)
-    with pytest.raises(ValueError, match="'inlet' is not a named group"):
+    with pytest.raises(ValueError, match="'inlet' is not a physical group"):
         fl.drained("inlet")
     with pytest.raises(ValueError, match="finite"):
         fl.pressure(face(0, L), float("inf"))
