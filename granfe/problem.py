@@ -225,6 +225,12 @@ class ContinuumProblem:
 
         return self._dirichlet(component, value, at, topological=False)
 
+    def fix_everywhere(self, component: str, value=0.0):
+        """Dirichlet condition at every dof of a component, interior ones too (to hold a field
+        the material leaves undetermined, e.g. chi of a micromorphic solid with only lam and
+        mu). Returns the function holding the value."""
+        return self._dirichlet(component, value, lambda x: np.full(x.shape[1], True), topological=False)
+
     def _dirichlet(self, component, value, where, topological: bool):
         Vi = sub_space(self.V, component, self.fields)
         fdim = self.domain.topology.dim - 1

@@ -33,7 +33,7 @@ import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
 
 import numpy as np
-from dolfinx import fem, mesh
+from dolfinx import mesh
 
 from granfe.io import ContinuumWriter
 from granfe.models.micromorphic import MicromorphicMaterial, micromorphic_energy
@@ -106,15 +106,6 @@ def svk_uniaxial(stretch, lam, mu):
     return np.sqrt(1 + 2 * E2), stretch * mu * (3 * lam + 2 * mu) / (lam + mu) * E1
 
 
-def clamp_everywhere(problem, field):
-    i = [f.name for f in problem.fields].index(field)
-    Vi = problem.V.sub(i)
-    Vc, _ = Vi.collapse()
-    dofs = fem.locate_dofs_geometrical((Vi, Vc), lambda x: np.full(x.shape[1], True))
-    problem.bcs.append(fem.dirichletbc(fem.Function(Vc), dofs, Vi))
-    problem.invalidate()
-
-
 # ---- FE ---------------------------------------------------------------------------------
 stretches = np.linspace(1.0, args.stretch, steps + 1)[1:]
 runs = {}
@@ -130,7 +121,7 @@ for name, p in SETS.items():
     problem.fix(lambda x: np.isclose(x[2], 0.0), "u_z")
     pull = problem.fix(lambda x: np.isclose(x[0], 1.0), "u_x", 0.0)
     if name == "lam_mu_only":
-        clamp_everywhere(problem, "phi")
+        problem.fix_everywhere("phi")
     rows = []
     for k, stretch in enumerate(stretches):
         pull.value = stretch - 1.0

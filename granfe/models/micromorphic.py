@@ -357,6 +357,23 @@ def stresses(u, phi, c):
     return S + T.T, S + T + T.T, m
 
 
+def plot_fields(u, phi, sigma, gdim: int) -> dict:
+    """Scalar fields to render of a micromorphic state: magnitudes of u and phi, the von Mises
+    stress of sym(sigma), and every component of u, phi and sigma."""
+    s = ufl.sym(sigma)
+    dev = s - ufl.tr(s) / gdim * ufl.Identity(gdim)
+    out = {"u_magnitude": ufl.sqrt(ufl.inner(u, u)),
+           "von_mises": ufl.sqrt(1.5 * ufl.inner(dev, dev)),
+           "phi_magnitude": ufl.sqrt(ufl.inner(phi, phi))}
+    axes = "xyz"
+    for i in range(gdim):
+        out[f"u_{axes[i]}"] = u[i]
+        for j in range(gdim):
+            out[f"phi_{axes[i]}{axes[j]}"] = phi[i, j]
+            out[f"sigma_{axes[i]}{axes[j]}"] = sigma[i, j]
+    return out
+
+
 class Micromorphic(ContinuumModel):
     """Small-strain isotropic micromorphic elasticity with a :class:`MicromorphicMaterial`."""
 
@@ -419,17 +436,4 @@ class Micromorphic(ContinuumModel):
 
     def plot_fields(self, w, state):
         u, phi = self._split(w)
-        gdim = self.gdim
-        sigma = self.stresses(w, state)["sigma"]
-        s = ufl.sym(sigma)
-        dev = s - ufl.tr(s) / gdim * ufl.Identity(gdim)
-        out = {"u_magnitude": ufl.sqrt(ufl.inner(u, u)),
-               "von_mises": ufl.sqrt(1.5 * ufl.inner(dev, dev)),
-               "phi_magnitude": ufl.sqrt(ufl.inner(phi, phi))}
-        axes = "xyz"
-        for i in range(gdim):
-            out[f"u_{axes[i]}"] = u[i]
-            for j in range(gdim):
-                out[f"phi_{axes[i]}{axes[j]}"] = phi[i, j]
-                out[f"sigma_{axes[i]}{axes[j]}"] = sigma[i, j]
-        return out
+        return plot_fields(u, phi, self.stresses(w, state)["sigma"], self.gdim)

@@ -92,6 +92,7 @@ from granfe.models.micromorphic import (
     as_tensor_field,
     micromorphic_energy,
     micromorphic_stresses,
+    plot_fields,
     strain_energy_density,
 )
 
@@ -313,18 +314,6 @@ class MicromorphicFiniteStrain(ContinuumModel):
 
     def plot_fields(self, w, state):
         u, phi = self._split(w)
-        gdim = self.gdim
-        sigma = self.stresses(w, state)["cauchy"]
-        s = ufl.sym(sigma)
-        dev = s - ufl.tr(s) / gdim * ufl.Identity(gdim)
-        out = {"u_magnitude": ufl.sqrt(ufl.inner(u, u)),
-               "von_mises": ufl.sqrt(1.5 * ufl.inner(dev, dev)),
-               "phi_magnitude": ufl.sqrt(ufl.inner(phi, phi)),
-               "J": ufl.det(ufl.Identity(gdim) + ufl.grad(u))}
-        axes = "xyz"
-        for i in range(gdim):
-            out[f"u_{axes[i]}"] = u[i]
-            for j in range(gdim):
-                out[f"phi_{axes[i]}{axes[j]}"] = phi[i, j]
-                out[f"sigma_{axes[i]}{axes[j]}"] = sigma[i, j]
+        out = plot_fields(u, phi, self.stresses(w, state)["cauchy"], self.gdim)
+        out["J"] = ufl.det(ufl.Identity(self.gdim) + ufl.grad(u))
         return out
