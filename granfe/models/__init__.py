@@ -7,13 +7,17 @@ subclass (and its material dataclass), plus one row in :data:`MODELS`.
 from granfe.models.base import ContinuumModel, Field
 from granfe.models.drucker_prager import MicropolarDruckerPrager
 from granfe.models.micromorphic import Micromorphic
+from granfe.models.micromorphic_drucker_prager import MicromorphicDruckerPrager
 from granfe.models.micromorphic_finite import MicromorphicFiniteStrain
 from granfe.models.micropolar import Micropolar
 from granfe.models.poroelastic import MicropolarPoroelastic, Poroelastic
+from granfe.models.quadrature_stress import QuadratureStress
 from granfe.models.strain_memory import StrainMemory
 
-__all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micromorphic", "MicromorphicFiniteStrain",
-           "Micropolar", "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "StrainMemory"]
+__all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micromorphic", "MicromorphicDruckerPrager",
+           "MicromorphicFiniteStrain",
+           "Micropolar", "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "QuadratureStress",
+           "StrainMemory"]
 
 MODELS: dict[str, type[ContinuumModel]] = {
     Micropolar.name: Micropolar,
@@ -21,8 +25,10 @@ MODELS: dict[str, type[ContinuumModel]] = {
     MicropolarDruckerPrager.name: MicropolarDruckerPrager,
     Micromorphic.name: Micromorphic,
     MicromorphicFiniteStrain.name: MicromorphicFiniteStrain,
+    MicromorphicDruckerPrager.name: MicromorphicDruckerPrager,
     Poroelastic.name: Poroelastic,
     MicropolarPoroelastic.name: MicropolarPoroelastic,
+    QuadratureStress.name: QuadratureStress,
 }
 
 
