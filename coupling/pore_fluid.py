@@ -29,8 +29,9 @@ cell (DG0) or the node's support (P1): it must hold tens of grains, or the scatt
 makes k (~n^3) and the forces noisy (measured: Kozeny-Carman flux within 1 % with ~40
 grains per cell, 27 % off with ~12 per triangle).
 
-Back to the grains, through `dem.Simulation.set_external_force` (FREE rows, held constant
-over the DEM steps of one fluid step): the fluid's force on the skeleton per bulk volume is
+Back to the grains, through `dem.Simulation.set_external_force` (FREE rows, held over the
+DEM steps of one fluid step, their change with the grains' motion in the meantime taken
+implicitly: :class:`DarcyFlow`): the fluid's force on the skeleton per bulk volume is
 ``-grad p`` (drag and the excess-pressure buoyancy of Darcy flow) plus the hydrostatic
 buoyancy, so grain ``i`` of volume ``V_i`` gets
 
@@ -61,6 +62,7 @@ from dolfinx.fem.petsc import LinearProblem, assemble_vector
 
 from coupling.locate import owner_ranks, relocate
 from coupling.operators import FieldBasis
+from dem.drag import GroupDrag, group_means
 from dem.state import FREE
 from granfe.problem import Where, boundary_facets
 from granfe.solvers import check_ksp_converged
@@ -85,6 +87,11 @@ class PoreFluidParameters:
             crammed cells), 0 < min < max < 1.
         porosity_space: ``"DG0"`` (cell binning) or ``"P1"`` (nodal) for n and v_s.
         pressure_degree: Lagrange degree of p, 1 or 2.
+        implicit_drag: the velocity components (``"all"``, ``"none"`` or axes such as
+            ``"y"``, ``"xz"``) whose cell-mean changes between two fluid steps feel the
+            fluid's linearised response at once (:meth:`DarcyFlow.substep_hook`); leave out
+            the axes along which the fluid cannot resist a uniform motion (a periodic
+            direction), where the drag would only slow the cell-mean's changes.
     """
 
     viscosity: float = 1.0e-3
@@ -97,11 +104,19 @@ class PoreFluidParameters:
     porosity_max: float = 0.95
     porosity_space: str = "DG0"
     pressure_degree: int = 1
+    implicit_drag: str = "all"
 
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name in ("permeability", "grain_diameter") and v is None:
+                continue
+            if f.name == "implicit_drag":
+                if not (v in ("all", "none") or (isinstance(v, str) and v
+                                                 and set(v) <= set("xyz")
+                                                 and len(set(v)) == len(v))):
+                    raise ValueError(f"PoreFluidParameters.implicit_drag must be 'all', "
+                                     f"'none' or axes such as 'y' or 'xz', got {v!r}")
                 continue
             if f.name == "porosity_space":
                 if v not in ("DG0", "P1"):
@@ -155,10 +170,22 @@ class DarcyFlow:
     :meth:`flux` say otherwise. :meth:`step` solves one fluid step and applies the forces;
     :meth:`advance` alternates fluid steps and DEM steps.
 
-    The coupling is explicit (the forces are held over the DEM steps of a fluid step), and
-    the fluid acts on the grains as a drag with the relaxation time ``rho_s (1 - n) k / mu_f``:
-    a fluid step much longer than that (in the tightest cell, so mind ``porosity_min``) is
-    unstable. Nothing checks this yet.
+    Sub-cycling: the forces of a fluid step are held over its DEM steps, and their change
+    with the grains' cell-mean velocity U since the fluid step is taken implicitly in every
+    DEM step (:meth:`substep_hook`, `dem.drag.GroupDrag`): the fluid's response to U is, per
+    grain, the drag ``-alpha_i (U - U_ref)`` with
+
+        alpha_i = V_i mu_f / (k (1 - n)) * D / (1 + D),   D = k dt_f pi^2 / (mu_f n beta_f h^2),
+
+    the Darcy drag of a compaction wave of the cell's size h (1D: ``k/mu grad p = v_s``), cut
+    by the storage where the fluid step dt_f is too short for the pressure to diffuse over a
+    cell (D < 1: undrained, the fluid a spring of stiffness ~ pi^2 / (n beta h^2) dt_f). Held
+    explicitly instead, that drag is unstable once dt_f exceeds twice the relaxation time
+    ``rho_s (1 - n) k / mu_f`` (measured on the consolidation column: blow-up between 8 and
+    12 DEM steps per fluid step with 2 tau = 15 DEM steps, halving with tau; the same with
+    beta_f = 0, so the drag, not the compressibility). The linearised drag bounds the true
+    response (a Darcy drag on the irrotational part of v_s at most), so the sub-cycled
+    iteration is stable for any dt_f and its fixed point is the fluid's.
     """
 
     def __init__(self, domain: _mesh.Mesh, sim, params: PoreFluidParameters | None = None, *,
@@ -204,6 +231,12 @@ class DarcyFlow:
         #: `dem.Simulation.set_external_force` holds one set, which :meth:`apply_forces` sets
         self.extra_force: np.ndarray | None = None
         self.t = 0.0
+        self.drag: GroupDrag | None = None  #: the implicit drag of the last fluid step
+        self._scratch: dict = {}
+        self._dt = None       # the last fluid step [s] (None: steady)
+        g = domain.geometry
+        xc = g.x[g.dofmaps[0]][:, :, :gdim]
+        self._cell_size = (xc.max(axis=1) - xc.min(axis=1)).min(axis=1)  # local cells [m]
         self.grains_to_mesh()
         self.porosity.x.array[:] = 1.0 - self._solid_fraction()
         self._clip_porosity()
@@ -249,9 +282,16 @@ class DarcyFlow:
                 seen.append(s)
         return seen
 
+    def _work(self, name: str, V) -> fem.Function:
+        """A scratch Function on V kept between fluid steps (its PETSc wrapper is made once)."""
+        f = self._scratch.get(name)
+        if f is None:
+            f = self._scratch[name] = fem.Function(V)
+        return f
+
     def _solid_fraction(self) -> np.ndarray:
         """Lumped-mass projection sum_i V_i N_a(x_i) / int N_a of the local dofs of Vn."""
-        f = fem.Function(self.Vn)
+        f = self._work("solid", self.Vn)
         self._spaces["n"].sum_to(self.volume[self._mine], f)
         return f.x.array / self.lumped_mass
 
@@ -264,7 +304,7 @@ class DarcyFlow:
         gdim = self.domain.geometry.dim
         p, mine, space = self.sim.p, self._mine, self._spaces["v"]
         vol = self.volume[mine]
-        num, den = fem.Function(self.Vv), fem.Function(self.Vv)
+        num, den = self._work("v_num", self.Vv), self._work("v_den", self.Vv)
         space.sum_to(vol[:, None] * p.v[mine, :gdim], num)
         space.sum_to(np.repeat(vol[:, None], gdim, axis=1), den)
         d = den.x.array
@@ -377,6 +417,7 @@ class DarcyFlow:
         self.p.x.scatter_forward()
         if dt is not None:
             self.t += dt
+        self._dt = None if steady else dt
         return self.p
 
     def inflow(self, where: Where) -> float:
@@ -396,34 +437,74 @@ class DarcyFlow:
     def grain_forces(self) -> np.ndarray:
         """The fluid's force on every grain (n, 3) [N] from the last solve: Darcy
         ``-V grad p / (1 - n)`` plus buoyancy ``-rho_f V g`` (the same on every rank)."""
+        return self._at_grains()[0]
+
+    def _at_grains(self):
+        """(forces (n, 3) [N], drag coefficients alpha (n,) [N s/m], global cell (n,)) of
+        every grain, the same on every rank."""
         gdim = self.domain.geometry.dim
         self.grad_p.interpolate(self._grad_expr)
         mine = self._mine
         grad = self._spaces["g"].at_grains(self.grad_p)
         n = self._spaces["n"].at_grains(self.porosity)[:, 0]
+        cells = self._spaces["n"].basis.cells
+        tdim = self.domain.topology.dim
+        out = np.zeros((self.sim.p.n, 5))
+        out[mine, :gdim] = -self.volume[mine, None] * grad / (1.0 - n[:, None])
+        out[mine, 3] = self._drag_coefficient(self.volume[mine], n, self._cell_size[cells])
+        out[mine, 4] = self.domain.topology.index_map(tdim).local_to_global(cells) + 1
+        out = self.domain.comm.allreduce(out)   # each grain on one rank: an exact sum
         f = np.zeros((self.sim.p.n, 3))
-        f[mine, :gdim] = -self.volume[mine, None] * grad / (1.0 - n[:, None])
-        f = self.domain.comm.allreduce(f)   # each grain on one rank: an exact sum
+        f[:, :gdim] = out[:, :gdim]
         f -= self.params.density * self.volume[:, None] * self.sim.gravity[None, :]
-        return f
+        return f, out[:, 3], out[:, 4].astype(np.int64) - 1
+
+    def _drag_coefficient(self, V, n, h):
+        """The drag coefficients alpha = V mu / (k (1 - n)) D / (1 + D) [N s/m] of grains of
+        volume V, porosity n in cells of size h (see the class docstring)."""
+        prm = self.params
+        k = prm.permeability if prm.permeability is not None else \
+            kozeny_carman(n, self.d, prm.kozeny_carman)
+        alpha = V * prm.viscosity / (k * (1.0 - n))
+        if self._dt is not None and prm.compressibility > 0:
+            D = k * self._dt * math.pi**2 / (prm.viscosity * n * prm.compressibility * h**2)
+            alpha *= D / (1.0 + D)
+        return alpha
 
     def apply_forces(self) -> None:
         """Hand the fluid's forces (plus :attr:`extra_force`) to the DEM, constant until the
-        next call."""
-        self.forces = self.grain_forces()
+        next call, and set up the implicit drag of the DEM steps until then (:attr:`drag`)."""
+        self.forces, alpha, cell = self._at_grains()
         total = self.forces if self.extra_force is None else self.forces + self.extra_force
         free = np.flatnonzero(self.sim.p.kind == FREE)
         self.sim.set_external_force(free, total[free])
+        axes = self.params.implicit_drag
+        flags = [0.0, 0.0, 0.0] if axes == "none" else \
+            [float(axes == "all" or c in axes) for c in "xyz"]
+        if not any(flags):
+            self.drag = None
+            return
+        cells, group = np.unique(cell, return_inverse=True)
+        u_ref = group_means(self.sim.p.v, group, self.volume, len(cells))
+        self.drag = GroupDrag(group, self.volume, alpha, u_ref, flags)
+
+    def substep_hook(self):
+        """A `dem.Simulation.step` hook for the DEM steps until the next fluid step: the
+        implicit drag (None if ``implicit_drag == "none"``). The grains it drags carry the
+        fluid's external force, so the DEM's kicks read their force rows."""
+        return None if self.drag is None else self.drag.hook(self.sim)
 
     def step(self, dt: float | None) -> fem.Function:
         """One fluid step of ``dt`` [s] (None: steady) at the grains' state now, then its
-        forces to the grains. Collective."""
+        forces to the grains; pass :meth:`substep_hook` to the DEM steps that follow
+        (``sim.step(m, hook=flow.substep_hook())``, as :meth:`advance` does). Collective."""
         self.solve(dt)
         self.apply_forces()
         return self.p
 
     def advance(self, dem_steps: int, every: int) -> None:
-        """``dem_steps`` DEM steps, a fluid step of ``every`` DEM steps before each block."""
+        """``dem_steps`` DEM steps, a fluid step of ``every`` DEM steps before each block,
+        the implicit drag in every DEM step."""
         if not (int(every) >= 1 and int(dem_steps) >= 0):
             raise ValueError(f"every must be >= 1 and dem_steps >= 0, got {every!r}, "
                              f"{dem_steps!r}")
@@ -431,7 +512,7 @@ class DarcyFlow:
         while done < dem_steps:
             m = min(int(every), dem_steps - done)
             self.step(m * self.sim.dt)
-            self.sim.step(m)
+            self.sim.step(m, hook=self.substep_hook())
             done += m
 
 
@@ -441,6 +522,7 @@ class _GrainSpace:
     def __init__(self, domain, element):
         self.V = fem.functionspace(domain, element)
         self.basis: FieldBasis | None = None
+        self._vec = None    # (matrix, its left vector): kept while the matrix is
 
     def build(self, points: np.ndarray) -> None:
         if self.basis is not None:
@@ -450,10 +532,14 @@ class _GrainSpace:
     def sum_to(self, values: np.ndarray, out: fem.Function) -> None:
         """``out = N^T values``: per dof, the sum over the grains of all ranks of their
         values (n, value_size) times the basis function at their centroid. Collective."""
-        vec = self.basis.matrix.createVecLeft()
+        A = self.basis.matrix
+        if self._vec is None or self._vec[0] is not A:
+            if self._vec is not None:
+                self._vec[1].destroy()
+            self._vec = (A, A.createVecLeft())
+        vec = self._vec[1]
         vec.setArray(np.ascontiguousarray(values, dtype=float).ravel())
-        self.basis.matrix.multTranspose(vec, out.x.petsc_vec)
-        vec.destroy()
+        A.multTranspose(vec, out.x.petsc_vec)
         out.x.scatter_forward()
 
     def at_grains(self, u: fem.Function) -> np.ndarray:
