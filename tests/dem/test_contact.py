@@ -29,7 +29,7 @@ def test_effective_moduli_match_peers():
 def test_hertz_force_energy_and_damping():
     row = pair_table([QUARTZ])[0, 0]
     es, d, rs, ms, vn = row[P_ESTAR], 1e-6, 5e-4, 5e-6, 0.3
-    fn, fnd, *_, e_n, e_pre, e_t, p_f = hertz_mindlin_force(
+    fn, fnd, *_, e_n, e_pre, e_t, p_f, _ = hertz_mindlin_force(
         row, d, rs, ms, vn, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 1e-8)
     le = math.log(0.5)
     beta = le / math.sqrt(le**2 + math.pi**2)

@@ -9,7 +9,7 @@ import pytest
 
 import dem
 from dem import forces
-from dem.contact import pair_table
+from dem.contact import HIST, pair_table
 from dem.contact.hertz_mindlin import hertz_mindlin_force
 from dem.contact.kinematics import pair_kinematics, project_history
 from dem.contact.linear import linear_force
@@ -61,21 +61,22 @@ def pass_with(sim, path):
     out = np.full((len(nl.pi) + 1, forces.NOUT), np.nan)
     args = (nl.pi, nl.pj, p.x, p.v, p.omega, p.radius, p.mass, p.material, sim.table, hist,
             slip, etan, sim.dt)
+    hp = 0.5 * sim.dt  # the dashpots' prediction, as in a step
     if path == "csr":
         lay = forces.pair_layout(nl.pi, nl.pj, p.n, hist, slip, etan)
-        e = forces.pair_forces(*args, out, *acc, hit=hit, layout=lay)
+        e = forces.pair_forces(*args, out, *acc, hit=hit, layout=lay, horizon=hp)
     elif path == "fused":
-        e = forces.pair_forces(*args, out, *acc, hit=hit)
+        e = forces.pair_forces(*args, out, *acc, hit=hit, horizon=hp)
     elif path == "rows":
-        e = forces.pair_forces(*args, out, *acc, hit=hit, rows=True)
+        e = forces.pair_forces(*args, out, *acc, hit=hit, rows=True, horizon=hp)
     elif path == "rows_csr":
         lay = forces.pair_layout(nl.pi, nl.pj, p.n, hist, slip, etan)
-        e = forces.pair_forces(*args, out, *acc, hit=hit, rows=True, layout=lay)
+        e = forces.pair_forces(*args, out, *acc, hit=hit, rows=True, layout=lay, horizon=hp)
     else:  # the threads' path: rows over the layout, then the per-particle gather
         start, pj32, live, jstart, jrow = forces.pair_layout(nl.pi, nl.pj, p.n, hist, slip,
                                                              etan)
         touched = np.zeros(p.n, np.int8)
-        forces._pair_rows_csr(start, pj32, live, *args[2:], out, touched)
+        forces._pair_rows_csr(start, pj32, live, *args[2:], hp, out, touched)
         part = np.zeros(((p.n + forces.GATHER_CHUNK - 1) // forces.GATHER_CHUNK, 2))
         forces._gather(start, jstart, jrow, live, out, *acc, hit, part, touched)
         e = (float(part[:, 0].sum()), float(part[:, 1].sum()))
@@ -114,10 +115,10 @@ def test_wall_rows_equal_the_serial_wall_loop(dim):
         args = (nl.wi, nl.ww, p.x, p.v, p.omega, p.radius, p.mass, p.material, w.point,
                 w.normal, w.velocity, w.material, sim.table, hist, slip, etan, sim.dt)
         if rows:
-            forces._wall_rows(*args, out)
+            forces._wall_rows(*args, 0.5 * sim.dt, out)
             e = forces._wall_scatter(nl.wi, nl.ww, out, *acc, wf, hit)
         else:
-            e = forces.wall_forces(*args, out, *acc, wf, hit=hit)
+            e = forces.wall_forces(*args, out, *acc, wf, hit=hit, horizon=0.5 * sim.dt)
         res.append([np.asarray(e), *acc, hit, wf, hist, slip, etan])
     assert (res[0][-1] != 0).sum() > 10  # walls carry the bed
     for a, b in zip(*res, strict=True):
@@ -136,20 +137,22 @@ def test_one_contact_equals_the_law_assembled_by_hand(law):
     om = np.array([[3.0, -2.0, 1.0], [0.5, 4.0, -1.5]])
     radius, mass = np.array([1e-3, 0.9e-3]), np.array([1.1e-5, 0.8e-5])
     table = pair_table([mat])
-    hist = np.array([[1e-6, -2e-6, 0.5e-6]])
+    # spring [m], normal force [N] and speed [m/s] of the last pass (the dashpot's history)
+    hist = np.array([[1e-6, -2e-6, 0.5e-6, 3e-3, 0.015, 0.0]])
+    assert hist.shape[1] == HIST
     slip, etan = np.zeros(1, np.int8), np.zeros(1)
     pi, pj = np.array([0]), np.array([1])
     acc = [np.zeros((2, 3)) for _ in range(5)]
     out = np.zeros((1, forces.NOUT))
     h0 = hist.copy()
     e, es = forces.pair_forces(pi, pj, x, v, om, radius, mass, np.zeros(2, np.int32), table,
-                               hist, slip, etan, 1e-6, out, *acc)
+                               hist, slip, etan, 1e-6, out, *acc, horizon=0.5e-6)
     nx, ny, nz, delta, reff, meff, vn, vtx, vty, vtz, ai, aj = pair_kinematics(
         x, v, om, radius, mass, 0, 1)
     n = np.array([nx, ny, nz])
-    s = project_history(*h0[0], nx, ny, nz)
+    s = project_history(*h0[0, :3], nx, ny, nz)
     f = (linear_force if law == "linear" else hertz_mindlin_force)(
-        table[0, 0], delta, reff, meff, vn, vtx, vty, vtz, *s, 0, 1e-6)
+        table[0, 0], delta, reff, meff, vn, vtx, vty, vtz, *s, 0, 1e-6, 3e-3, 0.015, 0.0, 0.5e-6)
     fn, fnd, ft, fd, s_new, e_n, e_t = f[0], f[1], np.array(f[2:5]), np.array(f[5:8]), \
         np.array(f[8:11]), f[12], f[14]
     wr = om[0] - om[1]
@@ -162,7 +165,8 @@ def test_one_contact_equals_the_law_assembled_by_hand(law):
     np.testing.assert_allclose(fe[1], (fn - fnd) * n, rtol=1e-14)
     np.testing.assert_allclose(fdamp[1], fnd * n + fd, rtol=1e-14)
     np.testing.assert_allclose(tdamp[0], -ai * np.cross(n, fd), rtol=1e-13, atol=1e-30)
-    np.testing.assert_allclose(hist[0], s_new, rtol=1e-14)
+    np.testing.assert_allclose(hist[0, :3], s_new, rtol=1e-14)
+    assert tuple(hist[0, 3:]) == (fn, vn, f[16])  # the next pass's dashpot history
     assert e == pytest.approx(e_n + e_t, rel=1e-14) and es == pytest.approx(e_t, rel=1e-14)
     assert etan[0] == es
 
@@ -177,7 +181,7 @@ def test_coincident_centres_give_no_force():
     radius, mass = np.full(2, 1e-3), np.full(2, 1e-5)
     res = []
     for rows in (False, True):
-        hist, slip, etan = np.zeros((1, 3)), np.zeros(1, np.int8), np.zeros(1)
+        hist, slip, etan = np.zeros((1, HIST)), np.zeros(1, np.int8), np.zeros(1)
         acc = [np.zeros((2, 3)) for _ in range(5)]
         e = forces.pair_forces(np.array([0]), np.array([1]), x, v, np.zeros((2, 3)), radius,
                                mass, np.zeros(2, np.int32), pair_table([mat]), hist, slip,
