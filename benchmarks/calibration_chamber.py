@@ -17,6 +17,8 @@ Reference: full DEM of the whole chamber, ``--seeds`` packings (lattice jitter a
 drawn per seed). Coupled: the same chamber with DE windows of half width ``--windows`` [m]
 (the rest a micropolar continuum carrying the increment from the consolidated state: top
 traction-free, sides on rollers (BC3) or traction-free (BC1)), the same packings' seeds.
+With ``--boxes``, also full DEM of each window with its ghost band alone, inside the
+chamber's walls (rigid, smooth): what the window gives when its surround is rigid.
 Every case runs in its own process (``--worker``), so its wall times (set-up: building and
 consolidating; push) and its peak memory (``ru_maxrss``) are its own.
 
@@ -77,6 +79,10 @@ parser.add_argument("--constants", nargs="+", default=["lattice"], choices=["lat
                          "its friction and dilatancy angles)")
 parser.add_argument("--friction-deg", type=float, default=30.0,
                     help="the Drucker-Prager continuum's friction angle (plane-strain match)")
+parser.add_argument("--boxes", action="store_true",
+                    help="also run full DEM in a rigid smooth box the size of each window with its "
+                         "ghost band (the chamber's boundary condition on its sides): what a window "
+                         "gives when its surround is rigid, beside what the continuum gives")
 parser.add_argument("--reuse", action="store_true",
                     help="take a case's record from --work if it ran with the same parameters")
 parser.add_argument("--reference", type=Path, default=None,
@@ -111,6 +117,17 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
                     {} if continuum == "micropolar" else
                     dict(continuum=continuum, continuum_friction_deg=args.friction_deg)) | (
                     {} if constants == "lattice" else dict(continuum_constants=constants))
+
+
+def box_parameters(bc: str, seed: int, window: float) -> dict:
+    """Full DEM of the window with its ghost band only, inside the chamber's walls (rigid
+    and smooth): the chamber cut down to the coupled case's grains."""
+    from coupling.apps.penetration.parameters import PenetrationParameters
+
+    band = PenetrationParameters.ghost_width * 2 * args.grain_radius
+    # the window fields only size the full DEM's unused continuum checks (as for the chamber)
+    return parameters(bc, seed, None) | dict(chamber_width=2 * (window + band),
+                                             chamber_depth=parameters(bc, seed, window)["window_depth"] + band)
 
 
 def worker(path: Path) -> None:
@@ -169,11 +186,17 @@ def worker(path: Path) -> None:
 
 
 def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropolar",
-             constants: str = "lattice") -> dict:
+             constants: str = "lattice", box: float | None = None) -> dict:
+    """One packing of one case in its own process: full DEM of the chamber (window None),
+    full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
     tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal")
-    name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm{tag}'}_s{seed}"
+    if box is not None:
+        name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
+        case = {"parameters": box_parameters(bc, seed, box), "window": None}
+    else:
+        name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm{tag}'}_s{seed}"
+        case = {"parameters": parameters(bc, seed, window, continuum, constants), "window": window}
     path = args.work / f"{name}.json"
-    case = {"parameters": parameters(bc, seed, window, continuum, constants), "window": window}
     done = path.with_suffix(".out.json")
     if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == case:
         print(f"{name}: reused from {done}", flush=True)
@@ -288,7 +311,26 @@ def compare(bc: str) -> dict:
               f"{case['speedup_total']:.1f}x faster "
               f"(push {case['speedup_push']:.1f}x), q_c RMS error {case['q_c_rms_error']:.1%} (reference scatter "
               f"{reference['one_packing_rms_vs_average']:.1%}), steady mean {case['q_c_steady_error']:.1%}", flush=True)
-    return {"parameters": prm, "depth": grid.tolist(), "full_dem": reference, "coupled": cases}
+    boxes = []
+    for window in (args.windows if args.boxes else []):
+        runs = [run_case(bc, s, None, box=window) for s in seeds]
+        q = np.mean([smoothed(r, "q_c", grid) for r in runs], axis=0)
+        total = float(np.mean([r["setup_s"] + r["push_s"] for r in runs]))
+        box = {"window_half_width": window, "grains": runs[0]["grains"],
+               "setup_s": [r["setup_s"] for r in runs], "push_s": [r["push_s"] for r in runs],
+               "total_s_mean": total, "speedup_total": reference["total_s_mean"] / total,
+               "q_c_rms_error": rms(q), "q_c_bias": float(np.mean(q[embedded] - q_ref[embedded]) / scale),
+               "q_c_steady_error": abs(tail_mean(runs) - ref_tail) / abs(ref_tail),
+               "q_c_rms_error_per_packing": [rms(smoothed(r, "q_c", grid)) for r in runs],
+               "q_c_mean": q.tolist(), "runs": runs}
+        boxes.append(box)
+        print(f"{bc} rigid box of the window {window * 100:.1f} cm: {box['grains']} grains, q_c RMS error "
+              f"{box['q_c_rms_error']:.1%} (mean {box['q_c_bias']:+.1%})", flush=True)
+    for c in cases:
+        if "q_c_mean" in c:
+            c["q_c_bias"] = float(np.mean(np.array(c["q_c_mean"])[embedded] - q_ref[embedded]) / scale)
+    return {"parameters": prm, "depth": grid.tolist(), "full_dem": reference, "coupled": cases,
+            "rigid_boxes": boxes}
 
 
 def plot(results: dict) -> None:
@@ -312,6 +354,10 @@ def plot(results: dict) -> None:
             ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-", lw=2 if calibrated else 1,
                     label=f"coupled{plastic}{', calibrated' if calibrated else ''}, window "
                           f"{c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
+        for b in r.get("rigid_boxes", []):
+            ax.plot(np.array(b["q_c_mean"]) / 1e3, d, ":", lw=1.5,
+                    label=f"full DEM in a rigid box of the {b['window_half_width'] * 100:.1f} cm window "
+                          f"({b['grains']} grains)")
         ax.invert_yaxis()
         ax.set_xlabel(f"q_c, filtered over {args.smooth * 1000:.0f} mm [kPa]")
         ax.set_ylabel("depth [cm]")
@@ -338,6 +384,13 @@ def plot(results: dict) -> None:
                 for c in pts:
                     ax.annotate(f"{c['window_half_width'] * 100:g}", (c["total_s_mean"], c["q_c_rms_error"]),
                                 fontsize=6, xytext=(3, 3), textcoords="offset points")
+        boxes = r.get("rigid_boxes", [])
+        if boxes:
+            ax.plot([b["total_s_mean"] for b in boxes], [b["q_c_rms_error"] for b in boxes], "x", color=color,
+                    ms=8, label=f"{bc}: full DEM in a rigid box of the window")
+            for b in boxes:
+                ax.annotate(f"{b['window_half_width'] * 100:g}", (b["total_s_mean"], b["q_c_rms_error"]),
+                            fontsize=6, xytext=(3, -8), textcoords="offset points")
         ax.axvline(ref["total_s_mean"], color=color, ls="--", label=f"{bc}: full DEM run time")
     ax.set_xscale("log")
     ax.set_xlabel("run time per packing [s] (set-up + push, one core)")
@@ -373,7 +426,10 @@ if __name__ == "__main__":
             for bc, c in part["cases"].items():
                 old = {key(x): x for x in cases.get(bc, {}).get("coupled", [])}
                 old.update({key(x): x for x in c["coupled"]})
-                cases[bc] = dict(c, coupled=sorted(old.values(), key=key))
+                boxes = {x["window_half_width"]: x for x in cases.get(bc, {}).get("rigid_boxes", [])}
+                boxes.update({x["window_half_width"]: x for x in c.get("rigid_boxes", [])})
+                cases[bc] = dict(c, coupled=sorted(old.values(), key=key),
+                                 rigid_boxes=[boxes[w] for w in sorted(boxes)])
         results = dict(parts[0], cases=cases,
                        merged_from=[{"file": str(f), "command": part["command"], "machine": part["machine"],
                                      "wall_time_s": part["wall_time_s"]} for f, part in zip(args.merge, parts,
