@@ -22,6 +22,7 @@ DEMOS = [
     ("demos/2d/mandel.py", True),
     ("demos/2d/micromorphic_shear_layer.py", True),
     ("demos/2d/grain_consolidation.py", False),
+    ("demos/2d/fe2_biaxial.py", True),
     ("demos/2d/coupled_punch.py", True),
     ("demos/2d/wave_through_overlap.py", True),
     ("demos/2d/cpt_coupled.py", True),
@@ -29,6 +30,8 @@ DEMOS = [
     ("demos/3d/pile_penetration_stress.py", False),
     ("demos/3d/cavity_expansion_stress.py", False),
     ("demos/3d/micromorphic_uniaxial.py", False),
+    ("demos/3d/micromorphic_plastic_triaxial.py", True),
+    ("demos/3d/sheared_till.py", False),
     ("demos/3d/seed004_stress_paths.py", False),
 ]
 DEMOS += [(str(p.relative_to(ROOT)), True) for p in sorted((ROOT / "demos" / "1d").glob("*.py"))]
