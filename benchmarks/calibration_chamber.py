@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -47,6 +46,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import machine
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -399,13 +399,6 @@ def plot(results: dict) -> None:
     ax.set_title("error against run time (labels: window half width [cm])")
     fig.tight_layout()
     fig.savefig(args.results / "calibration_chamber.png", dpi=120)
-
-
-def machine() -> dict:
-    model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")), platform.processor())
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(),
-            "load_average_1min_at_end": os.getloadavg()[0]}
 
 
 if __name__ == "__main__":

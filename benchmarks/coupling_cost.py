@@ -29,6 +29,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from machine import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
@@ -47,11 +48,6 @@ parser.add_argument("--dem-phase-worker", type=Path, help=argparse.SUPPRESS)
 args = parser.parse_args()
 
 
-def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return "unknown"
 
 
 def dem_phase_worker(path: Path):

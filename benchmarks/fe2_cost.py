@@ -34,11 +34,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from machine import cpu_model
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,14 +50,6 @@ YADE_ESCRIPT = dict(rves=8192, processes=16, days=4.5, test="triaxial",
                     source="the issue's context figure (YADE + Escript FEM x DEM, Guo & Zhao)")
 
 
-def cpu_model() -> str:
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        return re.search(r"^model name\s*:\s*(.*)$", text, re.MULTILINE).group(1)
-    except (OSError, AttributeError):
-        import platform
-
-        return platform.processor()
 
 
 def settings(args):

@@ -27,6 +27,7 @@ from mpi4py import MPI
 
 import numpy as np
 from dolfinx import mesh
+from machine import cpu_model
 
 from coupling.pore_fluid import DarcyFlow, PoreFluidParameters
 from dem import ContactMaterial, Particles, Simulation, box_walls
@@ -47,11 +48,6 @@ MAT = ContactMaterial(E=1e8, nu=0.25, density=2650.0, friction=0.5, restitution=
                       law="linear", kn=2e4, kt=1e4)
 
 
-def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return "unknown"
 
 
 def box(n):
