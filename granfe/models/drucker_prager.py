@@ -193,6 +193,10 @@ class MicropolarDruckerPrager(Micropolar):
     # residual of the first iterate; for the same reason no line search (it would compare
     # the two and shrink every step)
     solver_options = {"snes_max_it": 50, "snes_divergence_tolerance": 1e300}
+    #: Newton's first iteration of a step takes the elastic-plastic tangent of the last
+    #: committed step (see :meth:`_return`); False: the tangent of the trial return, elastic
+    #: wherever round-off puts a yielding point's trial value below the cone
+    tangent_predictor = True
 
     def constant_values(self, material):
         values = super().constant_values(material.elastic)
@@ -239,12 +243,22 @@ class MicropolarDruckerPrager(Micropolar):
         k_lin = c.k0 + c.H * eq
         k = ufl.max_value(k_lin, c.k_r)
         f_tr = tau_tr + c.A * p_tr - k
+        # a point that yielded in the last committed step returns also when its trial value is
+        # below zero by round-off only: at the start of a step (the fields of the last converged
+        # state) such a point sits on the cone to round-off, so that Newton's first iteration
+        # takes the elastic-plastic tangent of the last step (the tangent predictor) instead of
+        # the elastic one at the points that land below zero (the return moves the stress by
+        # at most that round-off)
+        on_cone = 1e-12 * (abs(k) + abs(c.A * p_tr) + tau_tr)
+        plastic = f_tr > 0
+        if self.tangent_predictor:
+            plastic = ufl.Or(plastic, ufl.And(state["yielding"] > 0.5, f_tr > -on_cone))
         # k(e_q + dl) = max(linear, floor): f(dl) is the smaller of the two branches' (both
         # decreasing in dl), so its root is the smaller of their roots, for either sign of H
         dl_lin = (tau_tr + c.A * p_tr - k_lin) / (G + K * c.A * c.B + c.H)
         dl_floor = (tau_tr + c.A * p_tr - c.k_r) / (G + K * c.A * c.B)
-        dl_cone = ufl.conditional(f_tr > 0, ufl.min_value(dl_lin, dl_floor), 0.0)
-        apex = ufl.And(f_tr > 0, tau_tr - G * dl_cone < 0)
+        dl_cone = ufl.conditional(plastic, ufl.min_value(dl_lin, dl_floor), 0.0)
+        apex = ufl.And(plastic, tau_tr - G * dl_cone < 0)
         # apex: the deviatoric and couple stresses vanish, the mean stress meets the cone
         # (without dilatancy or hardening the apex is reached by no flow: the mean stress is
         # put on the apex, p = k / A); the hardening modulus of the branch the step starts on
@@ -270,7 +284,7 @@ class MicropolarDruckerPrager(Micropolar):
             "plastic_strain": state["plastic_strain"] + d_plastic_dev + (p_tr - p) / (3 * K) * I3,
             "plastic_curvature": state["plastic_curvature"] + d_curv,
             "equivalent_plastic_strain": eq + ufl.conditional(apex, dl + tau_tr / G, dl),
-            "yielding": ufl.conditional(f_tr > 0, 1.0, 0.0),
+            "yielding": ufl.conditional(plastic, 1.0, 0.0),
         }
 
     def state_update(self, w, state):
