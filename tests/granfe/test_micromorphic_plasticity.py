@@ -286,7 +286,10 @@ def test_serial_equals_parallel():
     pts = np.array([[0.5, 0.5, 0.0], [0.1, 0.9, 0.0], [0.8, 0.2, 0.0]])
     for sub in (0, 1):
         a, b = probe(world.w.sub(sub).collapse(), pts), probe(alone.w.sub(sub).collapse(), pts)
-        assert np.allclose(a, b, rtol=1e-10, atol=1e-12 * np.abs(b).max())
+        # The partitioned LU and the return mapping differ at round-off, and Newton carries
+        # that over three plastic steps: 1e-12-1e-11 of the field's scale is what 2 ranks
+        # give run to run (CI once saw 1e-10 on a small component).
+        assert np.allclose(a, b, rtol=0, atol=1e-9 * np.abs(b).max())
     eq = world.state.committed["equivalent_plastic_strain"].x.array
     assert world.domain.comm.allreduce(eq.max(), MPI.MAX) > 0
 
