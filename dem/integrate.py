@@ -340,9 +340,64 @@ def _section(d, prefix, exclude=()):
     return {k[n:]: v for k, v in d.items() if k.startswith(prefix) and k[n:] not in exclude}
 
 
-def _trapezoid(prev, now, disp) -> float:
-    """Sum (prev + now)/2 . disp over rows [J]."""
-    return 0.5 * float(((prev + now) * disp).sum())
+@njit(cache=True)
+def _gather_ghosts(g, force, torque, fe, fd, td, out):
+    """Out (ng, 15) <- force, torque, fe, fd, td of the GHOST rows ``g``."""
+    for k in range(g.shape[0]):
+        i = g[k]
+        for c in range(3):
+            out[k, c] = force[i, c]
+            out[k, 3 + c] = torque[i, c]
+            out[k, 6 + c] = fe[i, c]
+            out[k, 9 + c] = fd[i, c]
+            out[k, 12 + c] = td[i, c]
+    return out
+
+
+@njit(cache=True)
+def _gather_rows(g, a, out):
+    """Out (ng, 3) <- a[g]."""
+    for k in range(g.shape[0]):
+        for c in range(3):
+            out[k, c] = a[g[k], c]
+    return out
+
+
+@njit(cache=True)
+def _ghost_work(prev, now, xg0, xg1, omega, g, dt):
+    """Work [J] of the contacts on the GHOST rows ``g`` over one step, by the trapezoidal
+    rule between their force rows ``prev`` and ``now`` (ng, 15: force, torque, fe, fd, td)
+    over the displacement xg1 - xg0 and the rotation dt omega: all, the conservative normal
+    part, the damping part."""
+    wa = 0.0
+    we = 0.0
+    wd = 0.0
+    for k in range(g.shape[0]):
+        i = g[k]
+        for c in range(3):
+            dx = xg1[k, c] - xg0[k, c]
+            dq = dt * omega[i, c]
+            wa += (prev[k, c] + now[k, c]) * dx + (prev[k, 3 + c] + now[k, 3 + c]) * dq
+            we += (prev[k, 6 + c] + now[k, 6 + c]) * dx
+            wd += (prev[k, 9 + c] + now[k, 9 + c]) * dx + (prev[k, 12 + c] + now[k, 12 + c]) * dq
+    return 0.5 * wa, 0.5 * we, 0.5 * wd
+
+
+@njit(cache=True)
+def _damp(v, omega, mass, inertia, kind, decay):
+    """v, omega <- decay v, decay omega of the FREE particles; returns the kinetic energy
+    this takes out [J]."""
+    ke = 0.0
+    for i in range(v.shape[0]):
+        if kind[i] != 0:
+            continue
+        ke += 0.5 * (mass[i] * (v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
+                     + inertia[i] * (omega[i, 0] * omega[i, 0] + omega[i, 1] * omega[i, 1]
+                                     + omega[i, 2] * omega[i, 2]))
+        for c in range(3):
+            v[i, c] *= decay
+            omega[i, c] *= decay
+    return (1.0 - decay * decay) * ke
 
 
 class Simulation:
@@ -411,6 +466,7 @@ class Simulation:
             # round-off contacts (1e-9 of a radius) are not overlaps
             particles.check_overlaps(allow=allow_overlap, tol=1e-9 * float(particles.radius.max()))
         self.time, self.nsteps = 0.0, 0
+        self.damping_removed = 0.0   # kinetic energy taken out by step(decay=...) [J]
         self._ghosts = self._ghost_index()
         n = particles.n
         self._led = dict(dissipated=0.0, friction=0.0, walls=0.0, ghosts=0.0, gravity=0.0,
@@ -595,13 +651,14 @@ class Simulation:
             if len(g) else 0.0
         return e, es, pd, pw, pg
 
-    def _positions(self):
+    def _positions(self, out=None):
+        """(positions of the GHOST rows (into ``out`` if given), wall points) now."""
         g = self._ghosts
-        return (self.p.x[g] if len(g) else _EMPTY), \
-            (self.walls.point.copy() if len(self.walls) else _EMPTY)
+        xg = _EMPTY if not len(g) else (self.p.x[g] if out is None else _gather_rows(g, self.p.x, out))
+        return xg, (self.walls.point.copy() if len(self.walls) else _EMPTY)
 
     # ---------------------------------------------------------------- stepping
-    def step(self, n: int = 1, hook=None, prescribed=None):
+    def step(self, n: int = 1, hook=None, prescribed=None, decay: float | None = None):
         """Advance n steps of dt (velocity Verlet), with blow-up and domain checks.
 
         Between two steps of one call (unless a check falls in between) the second
@@ -615,7 +672,10 @@ class Simulation:
         `dem.prescribed.Prescribed` whose motions of GHOST rows are written before each
         step's drift (the same bits as writing them from Python before each of n
         ``step(1)`` calls; ghosts' rotations are booked as dt omega, so a prescribed omega
-        is constant over the call). Returns the number of steps done."""
+        is constant over the call). ``decay``: the FREE particles' v and omega are scaled
+        by it before each step's drift (mass-proportional damping, `dem.control.relax`), the
+        kinetic energy it takes out booked as dissipated and summed in ``damping_removed``.
+        Returns the number of steps done."""
         p, dt, cell = self.p, self.dt, self.cell
         pk = None if prescribed is None else prescribed.pack(int(n), dt, p.kind)
         h = 0.5 * dt
@@ -623,7 +683,12 @@ class Simulation:
             (1, cell.velocity_gradient, cell.origin)
         acc = (p.force, p.torque, self._fe, self._fd, self._td)
         prm = (p.mass, p.inertia, p.kind, self.gravity, h)
-        ghosts = len(self._ghosts) > 0
+        ng = len(self._ghosts)
+        ghosts = ng > 0
+        # two buffers each for the ghosts' force rows and positions: a step's rows and
+        # positions are the next step's "before" (no allocation per step)
+        rowbuf = [np.empty((ng, 15)), np.empty((ng, 15))] if ghosts else None
+        posbuf = [np.empty((ng, 3)), np.empty((ng, 3))] if ghosts else None
         res = np.empty(8)
         kd = _kick_drift_par if get_num_threads() > 1 and p.n >= KD_PARALLEL_MIN else _kick_drift
         n = int(n)
@@ -631,10 +696,14 @@ class Simulation:
         gprev = None  # ghost rows of the forces the drift cleared
         for s in range(n):
             if pending is None:
+                if decay is not None:
+                    removed = _damp(p.v, p.omega, p.mass, p.inertia, p.kind, decay)
+                    self.damping_removed += removed
+                    self._led["dissipated"] += removed
                 if pk is not None:
                     _prescribe(s, *pk, p.x, p.v, p.omega)
                 if ghosts and gprev is None:  # (else the last step's: the kick keeps forces)
-                    gprev = self._ghost_rows()
+                    gprev = self._ghost_rows(rowbuf[0])
                 pending = _drift(p.x, p.v, p.omega, *acc, *prm, dt, per, lg, org,
                                  self._x0_tracked(), self._hit)
             wc0, we0, wd0, d2 = pending
@@ -644,10 +713,11 @@ class Simulation:
             self._zeroed = True  # the drift cleared the force arrays
             self._wf_prev[:] = self._wf
             e, es = self._evaluate(True, d2 if cell is None else None, s == 0)
-            gnow = self._ghost_rows() if ghosts else None
+            gnow = self._ghost_rows(rowbuf[1] if gprev is rowbuf[0] else rowbuf[0]) if ghosts else None
             last = hook is not None and bool(hook())
-            now = self._positions()  # of this force pass (before the next step's motions)
-            if last or s == n - 1 or (self.nsteps + 1) % self.check_every == 0:
+            # of this force pass (before the next step's motions)
+            now = self._positions(posbuf[s % 2] if ghosts else None)
+            if last or s == n - 1 or (self.nsteps + 1) % self.check_every == 0 or decay is not None:
                 wc1, we1, wd1, wg = _kick(p.v, p.omega, *acc, *prm, self._hit)
                 pending = None
             else:
@@ -678,10 +748,10 @@ class Simulation:
             return _EMPTY
         return x0
 
-    def _ghost_rows(self):
-        """(ng, 15) force, torque, fe, fd, td of the GHOST particles now."""
-        g, p = self._ghosts, self.p
-        return np.hstack([p.force[g], p.torque[g], self._fe[g], self._fd[g], self._td[g]])
+    def _ghost_rows(self, out):
+        """(ng, 15) force, torque, fe, fd, td of the GHOST particles now, into ``out``."""
+        p = self.p
+        return _gather_ghosts(self._ghosts, p.force, p.torque, self._fe, self._fd, self._td, out)
 
     def _book(self, wc, we, wd, wg, e, es, gprev, gnow, now):
         """Energy ledger of one step, every term by the trapezoidal rule over the actual
@@ -696,13 +766,7 @@ class Simulation:
         self._at = (xg1, wp1)
         wgh = wge = wgd = 0.0  # work of the contacts on the ghosts (all, fe, fd)
         if len(g):
-            dx, dq = xg1 - xg0, self.dt * p.omega[g]
-            prev = gprev
-            wgh = _trapezoid(prev[:, 0:3], gnow[:, 0:3], dx) \
-                + _trapezoid(prev[:, 3:6], gnow[:, 3:6], dq)
-            wge = _trapezoid(prev[:, 6:9], gnow[:, 6:9], dx)
-            wgd = _trapezoid(prev[:, 9:12], gnow[:, 9:12], dx) \
-                + _trapezoid(prev[:, 12:15], gnow[:, 12:15], dq)
+            wgh, wge, wgd = _ghost_work(gprev, gnow, xg0, xg1, p.omega, g, self.dt)
         www = wwe = wwd = 0.0  # work of the contacts on the walls (all, fe, fd)
         if len(self.walls):
             www, wwe, wwd = _wall_work(self._wf_prev, self._wf, wp0, wp1)
