@@ -29,12 +29,14 @@ __all__ = ["GroupDrag", "group_means"]
 
 @njit(cache=True)
 def _group_drag(v, force, mass, kind, g, dt, group, weight, alpha, axes, u_ref, sw, sa, su,
-                out):
+                out, hit):
     """Backward-Euler group drag: ``out`` (n, 3) [N] the drag on every particle (0 where
     ``group < 0`` or not FREE), also added to ``force``. v (n, 3) half-step velocities
     [m/s]; force (n, 3) the forces of this pass [N]; g (3,) [m/s^2]; group (n,) int64;
     weight (n,) the mean's weights; alpha (n,) [N s/m]; axes (3,) 0/1 the components
-    dragged; u_ref (G, 3); sw, sa (G,) and su (G, 3) scratch."""
+    dragged; u_ref (G, 3); sw, sa (G,) and su (G, 3) scratch; hit (n,) int8 the integrator's
+    flags of the rows whose forces the kicks read: set for every dragged row (a grain out
+    of contact would otherwise keep its drag in a row no kick reads, and carry it on)."""
     sw[:] = 0.0
     sa[:] = 0.0
     su[:] = 0.0
@@ -62,6 +64,7 @@ def _group_drag(v, force, mass, kind, g, dt, group, weight, alpha, axes, u_ref, 
             f = -alpha[i] * su[k, c]
             out[i, c] = f
             force[i, c] += f
+        hit[i] = 1
 
 
 def group_means(v: np.ndarray, group: np.ndarray, weight: np.ndarray, n_groups: int):
@@ -111,7 +114,7 @@ class GroupDrag:
         p = sim.p
         _group_drag(p.v, p.force, p.mass, p.kind, sim.gravity, sim.dt, self.group,
                     self.weight, self.alpha, self.axes, self.u_ref, self._sw, self._sa,
-                    self._su, self.force)
+                    self._su, self.force, sim._hit)
 
     def hook(self, sim):
         """A `dem.Simulation.step` hook applying the drag every step (never ends the call)."""

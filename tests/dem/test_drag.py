@@ -30,7 +30,7 @@ def test_terminal_velocity_is_exact(stiffness):
     m = sim.p.mass[0]
     alpha = stiffness * m / sim.dt
     F = np.array([1e-3, -2e-3, 0.0])
-    sim.set_external_force([0, 1], F)      # the kicks read the force rows of these
+    sim.set_external_force([0, 1], F)
     drag = GroupDrag([0, 0], sim.p.radius**2, [alpha, alpha], np.zeros((1, 3)))
     sim.step(3000 if stiffness < 1 else 20, hook=drag.hook(sim))
     U = group_means(sim.p.v, np.zeros(2, np.int64), np.ones(2), 1)[0]
@@ -62,6 +62,19 @@ def test_only_the_group_mean_is_dragged():
     sim.step(5, hook=drag.hook(sim))
     np.testing.assert_allclose(sim.p.v[:, :2], [[1.0, 0.5], [-1.0, -0.5]], atol=1e-12)
     assert np.abs(drag.force).max() < 1e-12
+
+
+def test_grains_out_of_contact_feel_the_drag():
+    """Two grains in free flight (no contact, no other force) under gravity: the drag alone
+    sets their terminal velocity m g / alpha (the kicks read the dragged rows)."""
+    x = np.array([[0.0, 0.0], [0.1, 0.0]])
+    sim = Simulation(Particles.spheres(x, np.full(2, 1e-3), 2650.0, dim=2), MAT, dt=1e-5,
+                     gravity=(0.0, -9.81, 0.0))
+    m = sim.p.mass[0]
+    alpha = 0.1 * m / sim.dt
+    drag = GroupDrag([0, 0], [1.0, 1.0], [alpha, alpha], np.zeros((1, 3)))
+    sim.step(3000, hook=drag.hook(sim))
+    np.testing.assert_allclose(sim.p.v[:, 1], -m * 9.81 / alpha, rtol=1e-9)
 
 
 def test_bad_arrays_are_named():
