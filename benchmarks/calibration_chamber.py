@@ -31,7 +31,8 @@ average). Writes ``calibration_chamber.json`` and ``calibration_chamber.png`` (q
 profiles, error against run time with the reference's scatter as a band) to ``--results``.
 
 Run: ``python benchmarks/calibration_chamber.py`` (about an hour on 2 idle cores, one core
-used at a time); ``GRANFE_SHORT=1`` a few-minute version on a smaller chamber.
+used at a time: per boundary condition 3 full-DEM packings of about 3 minutes each and 36
+coupled runs of 15-40 s); ``GRANFE_SHORT=1`` a few-minute version on a smaller chamber.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ parser.add_argument("--depth-ratio", type=float, default=0.8, help="chamber dept
 parser.add_argument("--push", type=float, default=1.5 if SHORT else 3.0, help="push [cone diameters]")
 parser.add_argument("--stress", type=float, default=1e5, help="vertical stress on top [Pa]")
 parser.add_argument("--velocity", type=float, default=1.0, help="push velocity [m/s]")
-parser.add_argument("--windows", type=float, nargs="+", default=[0.03] if SHORT else [0.03, 0.045],
+parser.add_argument("--windows", type=float, nargs="+", default=[0.03] if SHORT else [0.045, 0.06, 0.075],
                     help="DE window half widths [m]")
 parser.add_argument("--bcs", nargs="+", default=["BC3", "BC1"] if not SHORT else ["BC3"])
 parser.add_argument("--seeds", type=int, default=2 if SHORT else 3)
@@ -69,10 +70,12 @@ parser.add_argument("--interface", default="loose", choices=["loose", "iqn-ils"]
                     help="the coupled cases' exchange (coupling.interface)")
 parser.add_argument("--relaxation", type=float, default=0.1,
                     help="coupling.relaxation (0.3 diverged in a short chamber at 1.3 cone diameters)")
-parser.add_argument("--continuum", nargs="+", default=["micropolar"],
+parser.add_argument("--continuum", nargs="+",
+                    default=["micropolar"] if SHORT else ["micropolar", "micropolar_drucker_prager"],
                     choices=["micropolar", "micropolar_drucker_prager"],
                     help="the coupled cases' continuum models (each with every window)")
-parser.add_argument("--constants", nargs="+", default=["lattice"], choices=["lattice", "calibrated"],
+parser.add_argument("--constants", nargs="+", default=["lattice"] if SHORT else ["lattice", "calibrated"],
+                    choices=["lattice", "calibrated"],
                     help="where the coupled cases' continuum constants come from (each with every "
                          "model and window): the lattice estimate, or element tests on a periodic "
                          "cell of the grains at the window's stress (with the plastic model also "

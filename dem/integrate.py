@@ -715,6 +715,9 @@ class Simulation:
             e, es = self._evaluate(True, d2 if cell is None else None, s == 0)
             gnow = self._ghost_rows(rowbuf[1] if gprev is rowbuf[0] else rowbuf[0]) if ghosts else None
             last = hook is not None and bool(hook())
+            if len(self._ghosts) != ng:   # the buffers (and the numba gathers) are sized for ng
+                raise RuntimeError("Simulation.step: the hook changed the set of GHOST rows; "
+                                   "change kinds between step calls")
             # of this force pass (before the next step's motions)
             now = self._positions(posbuf[s % 2] if ghosts else None)
             if last or s == n - 1 or (self.nsteps + 1) % self.check_every == 0 or decay is not None:
