@@ -80,6 +80,10 @@ parser.add_argument("--constants", nargs="+", default=["lattice"] if SHORT else 
                          "model and window): the lattice estimate, or element tests on a periodic "
                          "cell of the grains at the window's stress (with the plastic model also "
                          "its friction and dilatancy angles)")
+parser.add_argument("--hardening", type=float, nargs="+", default=[0.0],
+                    help="the Drucker-Prager cases' hardening of the cohesion [Pa per unit equivalent plastic "
+                         "strain], each with every plastic case (0: perfectly plastic; a window driven by its "
+                         "grains then drifts once the continuum round it yields)")
 parser.add_argument("--friction-deg", type=float, default=30.0,
                     help="the Drucker-Prager continuum's friction angle (plane-strain match)")
 parser.add_argument("--boxes", action="store_true",
@@ -101,7 +105,7 @@ LATERAL = {"BC3": "rigid", "BC1": "stress"}
 
 
 def parameters(bc: str, seed: int, window: float | None, continuum: str = "micropolar",
-               constants: str = "lattice") -> dict:
+               constants: str = "lattice", hardening: float = 0.0) -> dict:
     """The PenetrationParameters of one case (window None: the full DEM's, whose window
     fields only size its unused continuum checks)."""
     r = args.grain_radius
@@ -119,7 +123,8 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
                 element_size_window=2.5 * 2 * r, element_size_far=width / 8) | (
                     {} if continuum == "micropolar" else
                     dict(continuum=continuum, continuum_friction_deg=args.friction_deg)) | (
-                    {} if constants == "lattice" else dict(continuum_constants=constants))
+                    {} if constants == "lattice" else dict(continuum_constants=constants)) | (
+                    dict(continuum_hardening=hardening) if hardening else {})
 
 
 def box_parameters(bc: str, seed: int, window: float) -> dict:
@@ -189,16 +194,17 @@ def worker(path: Path) -> None:
 
 
 def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropolar",
-             constants: str = "lattice", box: float | None = None) -> dict:
+             constants: str = "lattice", box: float | None = None, hardening: float = 0.0) -> dict:
     """One packing of one case in its own process: full DEM of the chamber (window None),
     full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
-    tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal")
+    tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal") + (
+        f"_h{hardening:g}" if hardening else "")
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
         case = {"parameters": box_parameters(bc, seed, box), "window": None}
     else:
         name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm{tag}'}_s{seed}"
-        case = {"parameters": parameters(bc, seed, window, continuum, constants), "window": window}
+        case = {"parameters": parameters(bc, seed, window, continuum, constants, hardening), "window": window}
     path = args.work / f"{name}.json"
     done = path.with_suffix(".out.json")
     if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == case:
@@ -278,21 +284,23 @@ def compare(bc: str) -> dict:
           f"{reference['one_packing_rms_vs_average']:.1%} RMS, standard error of the average "
           f"{reference['standard_error_of_average']:.1%}", flush=True)
     cases = []
-    for constants, continuum, window in [(k, c, w) for k in args.constants for c in args.continuum
-                                         for w in args.windows]:
-        tried = [run_case(bc, s, window, continuum, constants) for s in seeds]
+    for constants, continuum, hardening, window in [
+            (k, c, h, w) for k in args.constants for c in args.continuum
+            for h in (args.hardening if c != "micropolar" else [0.0]) for w in args.windows]:
+        tried = [run_case(bc, s, window, continuum, constants, hardening=hardening) for s in seeds]
+        name = f"{continuum}{f' (hardening {hardening / 1e6:g} MPa)' if hardening else ''}"
         runs = [r for r in tried if not r.get("stopped")]
         if not runs:
             cases.append({"window_half_width": window, "continuum": continuum, "constants": constants,
-                          "stopped_packings": len(tried), "runs": tried})
-            print(f"{bc} window {window * 100:.1f} cm, {continuum}, {constants} constants: every "
+                          "hardening": hardening, "stopped_packings": len(tried), "runs": tried})
+            print(f"{bc} window {window * 100:.1f} cm, {name}, {constants} constants: every "
                   "packing stopped (both exchanges diverged)", flush=True)
             continue
         q = np.mean([smoothed(r, "q_c", grid) for r in runs], axis=0)
         total = float(np.mean([r["setup_s"] + r["push_s"] for r in runs]))
         push = float(np.mean([r["push_s"] for r in runs]))
         case = {"window_half_width": window, "continuum": continuum, "constants": constants,
-                "grains": runs[0]["grains"],
+                "hardening": hardening, "grains": runs[0]["grains"],
                 "dofs": runs[0]["dofs"],
                 "setup_s": [r["setup_s"] for r in runs], "push_s": [r["push_s"] for r in runs],
                 "total_s_mean": total, "push_s_mean": push,
@@ -310,7 +318,7 @@ def compare(bc: str) -> dict:
                 "runs": tried}
         case["within_reference_scatter"] = case["q_c_rms_error"] <= reference["one_packing_rms_vs_average"]
         cases.append(case)
-        print(f"{bc} window {window * 100:.1f} cm, {continuum}, {constants} constants: {case['grains']} grains, "
+        print(f"{bc} window {window * 100:.1f} cm, {name}, {constants} constants: {case['grains']} grains, "
               f"{case['speedup_total']:.1f}x faster "
               f"(push {case['speedup_push']:.1f}x), q_c RMS error {case['q_c_rms_error']:.1%} (reference scatter "
               f"{reference['one_packing_rms_vs_average']:.1%}), steady mean {case['q_c_steady_error']:.1%}", flush=True)
@@ -353,6 +361,7 @@ def plot(results: dict) -> None:
         ax.plot(ref, d, "k", lw=2, label=f"full DEM ({r['full_dem']['grains']} grains)")
         for c in (c for c in r["coupled"] if "q_c_mean" in c):
             plastic = " plastic" if c.get("continuum", "micropolar") != "micropolar" else ""
+            plastic += f" H {c['hardening'] / 1e6:g} MPa" if c.get("hardening") else ""
             calibrated = c.get("constants", "lattice") == "calibrated"
             ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-", lw=2 if calibrated else 1,
                     label=f"coupled{plastic}{', calibrated' if calibrated else ''}, window "
@@ -373,11 +382,13 @@ def plot(results: dict) -> None:
         color = f"C{k}"
         ax.axhspan(0, ref["one_packing_rms_vs_average"], color=color, alpha=0.12,
                    label=f"{bc}: one full-DEM packing vs average")
-        for (model, constants), marker in zip(
-                [(m, k) for k in ("lattice", "calibrated") for m in ("micropolar", "micropolar_drucker_prager")],
-                ("o", "s", "^", "D"), strict=True):
+        groups = sorted({(c.get("constants", "lattice"), c.get("continuum", "micropolar"), c.get("hardening", 0.0))
+                         for c in r["coupled"]}, key=lambda g: (g[0] != "lattice", g[1], g[2]))
+        for (constants, model, hardening), marker in zip(groups, "os^DvP*h", strict=False):
             pts = [c for c in r["coupled"] if "q_c_rms_error" in c and c.get("continuum", "micropolar") == model
-                   and c.get("constants", "lattice") == constants]
+                   and c.get("constants", "lattice") == constants and c.get("hardening", 0.0) == hardening]
+            if hardening:
+                model = f"{model}, H {hardening / 1e6:g} MPa"
             if pts:
                 # markers only: run times measured on shared cores are noisier than the
                 # windows' order, so a line through them would zigzag
@@ -414,7 +425,8 @@ if __name__ == "__main__":
         cases = {}
 
         def key(x):
-            return x["window_half_width"], x.get("continuum", "micropolar"), x.get("constants", "lattice")
+            return (x["window_half_width"], x.get("continuum", "micropolar"), x.get("constants", "lattice"),
+                    x.get("hardening", 0.0))
 
         for part in parts:
             # a later file's reference replaces an earlier one's; coupled cases are joined, a

@@ -111,7 +111,8 @@ def test_calibrated_continuum_takes_the_cell_tests_constants_and_angles():
     lattice estimate: contacts slide and open), and the plastic continuum takes the cell's
     peak friction and dilatancy angles instead of the scene's."""
     prm = PenetrationParameters(**CHAMBER, continuum="micropolar_drucker_prager",
-                                continuum_constants="calibrated", continuum_friction_deg=20.0)
+                                continuum_constants="calibrated", continuum_friction_deg=20.0,
+                                continuum_hardening=2e6)
     model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
     cal, m = model.contact_stats["calibration"], model.material_fe
     assert cal["pressure"] == pytest.approx(-0.5 * sum(model.initial_stress), rel=1e-12)
@@ -121,6 +122,7 @@ def test_calibrated_continuum_takes_the_cell_tests_constants_and_angles():
     dp = model.problem.model.material
     assert dp.friction_deg == pytest.approx(cal["friction_peak_deg"]) and dp.friction_deg != 20.0
     assert 0 <= dp.dilatancy_deg <= dp.friction_deg
+    assert dp.hardening == 2e6
     history = model.run(steps=2)
     assert np.isfinite([h["q_c"] for h in history]).all()
 
@@ -130,3 +132,9 @@ def test_calibrated_constants_are_2d_only():
         PenetrationParameters(continuum_constants="measured")
     with pytest.raises(ValueError, match="'calibrated' is 2D only"):
         PenetrationParameters(dim=3, continuum_constants="calibrated")
+
+
+def test_hardening_is_validated():
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="continuum_hardening must be >= 0 Pa"):
+            PenetrationParameters(continuum_hardening=bad)

@@ -430,7 +430,8 @@ class CoupledPenetration:
         if cal is not None:
             phi = cal["friction_peak_deg"]
             psi = min(max(cal["dilatancy_deg"], 0.0), phi)
-        mat = DruckerPragerMaterial(elastic, prm.continuum_cohesion, phi, psi, match="plane_strain",
+        mat = DruckerPragerMaterial(elastic, prm.continuum_cohesion, phi, psi,
+                                    hardening=prm.continuum_hardening, match="plane_strain",
                                     initial_stress=(sxx, syy, sxx))
         return MicropolarDruckerPrager(mat)
 

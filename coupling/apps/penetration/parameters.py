@@ -91,6 +91,11 @@ class PenetrationParameters:
     continuum_friction_deg: float = 30.0
     continuum_dilatancy_deg: float = 0.0
     continuum_cohesion: float = 0.0
+    # linear hardening of the Drucker-Prager cohesion [Pa per unit equivalent plastic strain]:
+    # with perfect plasticity the continuum round a displacement-driven window has no tangent
+    # stiffness once it yields, and the window drifts with its grains (a 4.5 cm window sank
+    # 24 mm and q_c fell to zero); hardening keeps a restoring stiffness
+    continuum_hardening: float = 0.0
 
     def __post_init__(self):
         self._check_values()
@@ -168,6 +173,8 @@ class PenetrationParameters:
                              f"got {self.continuum_dilatancy_deg!r}")
         if not (np.isfinite(self.continuum_cohesion) and self.continuum_cohesion >= 0):
             raise ValueError(f"continuum_cohesion must be >= 0 Pa, got {self.continuum_cohesion!r}")
+        if not (np.isfinite(self.continuum_hardening) and self.continuum_hardening >= 0):
+            raise ValueError(f"continuum_hardening must be >= 0 Pa, got {self.continuum_hardening!r}")
         if not (np.isfinite(self.vertical_stress) and self.vertical_stress >= 0):
             raise ValueError(f"vertical_stress must be >= 0 Pa, got {self.vertical_stress!r}")
         if self.vertical_stress > 0 and self.dim != 2:

@@ -86,13 +86,16 @@ class ContinuumModel:
     under a vertical stress). ``constants`` (2D): ``lattice`` (the bonded hexagonal lattice
     scaled by the window's coordination) or ``calibrated`` (element tests on a periodic cell
     of the grains at the window's mean stress, :mod:`coupling.calibration`; its peak friction
-    and dilatancy angles then replace ``friction_deg`` and ``dilatancy_deg``)."""
+    and dilatancy angles then replace ``friction_deg`` and ``dilatancy_deg``). ``hardening``
+    [Pa]: the cone's cohesion grows by it per unit equivalent plastic strain (perfect
+    plasticity lets a displacement-driven window drift with its grains)."""
 
     model: str = parameter(P, "continuum")
     constants: str = parameter(P, "continuum_constants")
     friction_deg: float = parameter(P, "continuum_friction_deg")
     dilatancy_deg: float = parameter(P, "continuum_dilatancy_deg")
     cohesion: float = parameter(P, "continuum_cohesion")
+    hardening: float = parameter(P, "continuum_hardening")
 
 
 @dataclass(frozen=True)
