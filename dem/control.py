@@ -93,15 +93,14 @@ def relax(sim, tol: float = 1e-4, max_steps: int = 200_000, damping: float | Non
     ratio = math.inf
     hook = None
     if controllers:
-        # the controllers act before every step: after each force pass (the hook) and
-        # before the first step of each block
+        # the controllers act before every step: before the first here, then after each
+        # force pass (the step hook, which also runs after the last step of a block)
         def hook():
             for ctl in controllers:
                 ctl(sim)
+        hook()
     k, max_steps = 0, int(max_steps)
     while k < max_steps:
-        if hook is not None:
-            hook()
         # the steps to the next check in one call (the damping inside `Simulation.step`:
         # no Python between steps)
         k += sim.step(min(check_every - k % check_every, max_steps - k), hook=hook, decay=decay)
