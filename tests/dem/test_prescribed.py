@@ -103,3 +103,17 @@ def test_prescribed_rows_are_checked(bad, match):
     with pytest.raises(ValueError, match=match):
         sim.step(2, prescribed=Prescribed(Translated(pick, np.zeros((len(pick), 3)), (0, 1, 0)),
                                           other))
+
+
+def test_a_hook_that_changes_the_ghosts_is_refused():
+    """The ghosts' rows are gathered into buffers sized at the call's start: a hook that
+    holds or frees particles mid-call is refused by name (kinds change between calls)."""
+    sim = scene()[0]
+    p = sim.p
+
+    def release():
+        p.kind[np.flatnonzero(p.kind == dem.GHOST)[0]] = dem.FREE
+        sim.kinds_changed()
+
+    with pytest.raises(RuntimeError, match="the hook changed the set of GHOST rows"):
+        sim.step(3, hook=release)
