@@ -32,7 +32,8 @@ filled points are restored and SolveDidNotConverge raised, so the step is halved
 that fails to relax (`dem.rve.ConvergenceError`) fails the macro iteration (NaN residual).
 
 Checkpoint: :meth:`FE2.state_dict` holds the problem's state and every RVE's
-``state_dict`` keyed by the point's global number; one ``.npz`` a rank.
+``state_dict`` keyed by the point's global number; one ``.npz`` a rank, written atomically
+with a manifest (:mod:`coupling.checkpoints`), so a kill mid-write keeps the last one.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from dolfinx import fem
 from dolfinx.fem.petsc import assemble_residual, assemble_vector, assign
 from dolfinx.io import VTXWriter
 
+from coupling.checkpoints import CheckpointError, find_checkpoint, write_checkpoint
 from dem.integrate import Simulation
 from dem.periodic import PeriodicCell
 from dem.rve import RVE, ConvergenceError, from_mandel, to_mandel
@@ -395,21 +397,42 @@ class FE2:
         self._fill_points()
 
     def write_checkpoint(self, directory: str | Path) -> Path:
-        """:meth:`state_dict` to ``directory/fe2_rank<r>_of<n>.npz``. Collective."""
-        directory = Path(directory)
-        if self.comm.rank == 0:
-            directory.mkdir(parents=True, exist_ok=True)
-        self.comm.barrier()
-        np.savez(directory / f"fe2_rank{self.comm.rank}_of{self.comm.size}.npz",
-                 **self.state_dict())
-        return directory
+        """:meth:`state_dict` of every rank (``fe2_rank<r>_of<n>.npz``) as the checkpoint
+        ``directory``, written atomically (:func:`coupling.checkpoints.write_checkpoint`:
+        sha256 manifest, the previous checkpoint kept as ``<directory>.prev`` until the new
+        one is in place). Collective."""
+        comm = self.comm
 
-    def read_checkpoint(self, directory: str | Path) -> None:
-        path = Path(directory) / f"fe2_rank{self.comm.rank}_of{self.comm.size}.npz"
-        if not path.exists():
-            raise FileNotFoundError(f"no checkpoint {path} (written with another rank count?)")
-        with np.load(path) as data:
+        def files(tmp: Path) -> list[str]:
+            name = f"fe2_rank{comm.rank}_of{comm.size}.npz"
+            np.savez(tmp / name, **self.state_dict())
+            return [name]
+
+        return write_checkpoint(directory, self.steps_done, comm, files, meta={"kind": "fe2"})
+
+    def read_checkpoint(self, directory: str | Path) -> list[str]:
+        """Continue from the newest valid checkpoint among ``directory``, its unfinished
+        ``.tmp-*`` and ``.prev`` (:func:`coupling.checkpoints.find_checkpoint`); returns the
+        notes on those passed over (a truncated file, a missing manifest). Collective;
+        raises :class:`coupling.checkpoints.CheckpointError` when none is valid or it was
+        written on another rank count."""
+        comm = self.comm
+        found = None
+        if comm.rank == 0:
+            try:
+                found = find_checkpoint(directory)
+            except CheckpointError as err:
+                found = err
+        found = comm.bcast(found, root=0)
+        if isinstance(found, CheckpointError):
+            raise found
+        path, manifest, notes = found
+        if manifest.get("ranks") != comm.size:
+            raise CheckpointError(f"the checkpoint {path} was written on {manifest.get('ranks')} "
+                                  f"ranks; this run has {comm.size} (the RVEs are stored by owner)")
+        with np.load(Path(path) / f"fe2_rank{comm.rank}_of{comm.size}.npz") as data:
             self.load_state({k: data[k] for k in data.files})
+        return notes
 
 
 class FE2Writer:

@@ -129,13 +129,15 @@ def test_homogeneous_macro_test_equals_the_single_rve(protos):
 def test_failed_step_restores_every_rve_and_a_checkpoint_restores_the_run(protos, tmp_path):
     """A step the RVEs cannot relax in max_steps fails (SolveDidNotConverge) with every RVE
     and point back at the committed state; write / read of a checkpoint gives the same next
-    step to the bit."""
+    step to the bit; a checkpoint whose file was truncated after it was written is refused by
+    its sha256 and the previous one read instead, with a note saying so."""
     fe2, top = biaxial(MPI.COMM_SELF, (1, 2), protos, "fe2_fail_",
                        settings=MacroNewton(tangent="initial"))
     top.value = -5e-4 * H
     fe2.solve()
     before = fe2.state_dict()
-    fe2.write_checkpoint(tmp_path)
+    base = tmp_path / "checkpoint"
+    fe2.write_checkpoint(base)
     impatient = QuasiStatic(max_steps=40, ramp_steps=0)
     for r in fe2.rves:
         r.solver = impatient
@@ -150,7 +152,11 @@ def test_failed_step_restores_every_rve_and_a_checkpoint_restores_the_run(protos
     top.value = -1e-3 * H
     fe2.solve()
     s1 = fe2.stress()
-    fe2.read_checkpoint(tmp_path)
+    fe2.write_checkpoint(base)                       # the first one becomes checkpoint.prev
+    (newest,) = base.glob("fe2_rank*.npz")
+    newest.write_bytes(newest.read_bytes()[:100])
+    notes = fe2.read_checkpoint(base)
+    assert any("sha256" in n for n in notes) and any("checkpoint.prev" in n for n in notes), notes
     np.testing.assert_array_equal(fe2.stress(), before["points/stress"])
     fe2.solve()
     np.testing.assert_array_equal(fe2.stress(), s1)
