@@ -110,19 +110,6 @@ def under_punch(x):
     return np.isclose(x[2], 0.0) & (np.hypot(x[0], x[1]) <= punch_radius + 1e-9)
 
 
-def load_increment_residual(problem) -> float:
-    """Norm of the residual of the step's load increment on the last converged state (one
-    residual assembly; the scale of a tolerance stated relative to the load increment)."""
-    snes = problem.snes
-    x = problem.w.x.petsc_vec.copy()
-    f = x.duplicate()
-    snes.computeFunction(x, f)
-    norm = f.norm()
-    x.destroy()
-    f.destroy()
-    return norm
-
-
 def push(data, names, variant: Variant, tag: str) -> dict:
     """Gravity, then the punch in ``args.steps`` steps; the step times and iterations."""
     model = variant.model(variant.material)
@@ -147,7 +134,7 @@ def push(data, names, variant: Variant, tag: str) -> dict:
         comm.barrier()
         t0, c0 = time.perf_counter(), time.process_time()
         if variant.load_tol is not None:            # converged at load_tol of the increment's residual
-            problem.snes.setTolerances(rtol=0.0, atol=variant.load_tol * load_increment_residual(problem))
+            problem.snes.setTolerances(rtol=0.0, atol=variant.load_tol * problem.residual_norm())
         if variant.secant and len(history) == 2:    # equal steps: w_k = 2 w_(k-1) - w_(k-2)
             problem.w.x.array[:] = 2 * history[1] - history[0]
         its.append(problem.solve())

@@ -427,11 +427,28 @@ class ContinuumProblem:
         """The model's JIT options for forms and expressions of this problem (None: dolfinx's)."""
         return dict(self.model.jit_options) or None
 
+    def solver(self):
+        """The PETSc SNES of :meth:`solve`, built if needed (e.g. to change its tolerances)."""
+        if self._snes is None:
+            self._snes = self.snes_problem(self.residual(), self.prefix)
+        return self._snes.solver
+
+    def residual_norm(self) -> float:
+        """Norm of the static residual at the current ``w`` with the current loads and
+        Dirichlet values (one assembly; the committed quadrature-point state). Collective."""
+        snes = self.solver()
+        x = self.w.x.petsc_vec.copy()
+        f = x.duplicate()
+        snes.computeFunction(x, f)
+        norm = f.norm()
+        x.destroy()
+        f.destroy()
+        return float(norm)
+
     def solve(self, commit: bool = True) -> int:
         """Solve for ``self.w``; return SNES iterations; on failure restore the last good
         state. ``commit``: accept the quadrature-point state of the solution (one load step)."""
-        if self._snes is None:
-            self._snes = self.snes_problem(self.residual(), self.prefix)
+        self.solver()
         self._snes.solve()
         its = self.checked(self._snes, "static solve")
         if commit:
