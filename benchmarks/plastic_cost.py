@@ -59,6 +59,7 @@ from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDrucke
 from granfe.models.micropolar import Micropolar
 from granfe.probe import probe
 from granfe.problem import ContinuumProblem
+from granfe.solvers import ONE_LU_PER_STEP
 from meshes.penetration import build_chamber
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
@@ -187,8 +188,7 @@ class Variant:
 # one LU factorisation per step: the tangent of the step's first iteration preconditions GMRES
 # on the assembled tangent of every later iteration (Newton stays Newton)
 LOAD_TOL = args.load_tol
-ONE_LU = {"snes_lag_preconditioner": 100, "ksp_type": "gmres", "ksp_rtol": 1e-8,
-          "ksp_gmres_restart": 100, "ksp_max_it": 200}
+ONE_LU = ONE_LU_PER_STEP
 VARIANTS = {"elastic": Variant(Micropolar, elastic),
             "plastic_trial_tangent": Variant(TrialTangent, plastic),
             "plastic": Variant(MicropolarDruckerPrager, plastic),

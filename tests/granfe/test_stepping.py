@@ -12,6 +12,7 @@ from dolfinx import mesh
 from granfe.materials import MicropolarMaterial
 from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
 from granfe.problem import ContinuumProblem
+from granfe.solvers import ONE_LU_PER_STEP
 from granfe.stepping import LoadStepFailed, StepControl, follow_load_path
 
 ELASTIC = MicropolarMaterial.from_engineering(50e6, 0.3, length=0.02, kappa_over_mu=0.5,
@@ -40,8 +41,8 @@ def punch(tag: str, **petsc):
     return p, p.fix(under, "u_y", 0.0), under
 
 
-def follow(control: StepControl, tag: str):
-    problem, settle, under = punch(tag)
+def follow(control: StepControl, tag: str, **petsc):
+    problem, settle, under = punch(tag, **petsc)
     forces = []
     steps = follow_load_path(problem, lambda t: setattr(settle, "value", -t), SETTLEMENT, control,
                              on_step=lambda t, its: forces.append(-problem.reaction(under, "u_y")))
@@ -62,6 +63,11 @@ def test_secant_predictor_and_load_tolerance_follow_the_same_path_in_fewer_itera
     assert sum(its) < sum(its_ref), (its, its_ref)
     rtol, atol = problem.snes.getTolerances()[:2]
     assert (rtol, atol) == (1e-10, 1e-14), "the solver's tolerances are restored after each step"
+    # one LU a step preconditioning GMRES: the same Newton iterates
+    f_lu, its_lu, problem = follow(StepControl(**base, predictor="secant", load_tol=1e-8), "one_lu",
+                                   **ONE_LU_PER_STEP)
+    np.testing.assert_allclose(f_lu, f_ref, rtol=1e-7)
+    assert problem.snes.getKSP().getType() == "gmres"
 
 
 def test_a_failing_step_is_cut_back_and_a_step_below_min_step_gives_up():
