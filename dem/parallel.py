@@ -65,7 +65,7 @@ NCOL = 30
 # and the dashpot's history, `dem.contact`), slip, energy
 HCOL = 4 + HIST
 # the ledger's sums over steps (`Simulation._led` keys)
-_SUMS = ("dissipated", "friction", "gravity", "walls", "ghosts", "cell")
+_SUMS = ("dissipated", "friction", "gravity", "walls", "ghosts", "cell", "external")
 
 
 # ---------------------------------------------------------------- ownership
@@ -320,6 +320,7 @@ class DistributedSimulation:
         self._bank = dict.fromkeys(_SUMS, 0.0)
         self._unbooked0 = 0.0
         self.local, self._plan = None, None
+        self._ext = None   # (global ids (k,) sorted, forces (k, 3) [N]) of set_external_force
         self._decompose(chunk)
         t = self._totals()
         self._e0 = t["kinetic_translational"] + t["kinetic_rotational"] + t["elastic"]
@@ -549,6 +550,7 @@ class DistributedSimulation:
             fe[:], fd[:], td[:] = rows[:, FE], rows[:, FD], rows[:, TD]
             self._install_history(sim.nl, pairs, wall)
             sim.history_replaced()
+        self._install_external(included=carried)
 
     def _local_run(self, p, is_halo):
         """A `_LocalSimulation` of p (halo copies ``is_halo``) with the walls as they are,
@@ -687,6 +689,55 @@ class DistributedSimulation:
             self._relisted = True
         return False
 
+    # ---------------------------------------------------------------- external forces
+    def set_external_force(self, gids, force) -> None:
+        """Collective (the same arguments on every rank): `Simulation.set_external_force`
+        by global id. The constant force ``force`` [N] ((k, 3), or (3,) for every one) acts
+        on the FREE particles ``gids`` (k,) from the next force pass on, on whichever rank
+        owns each (it follows a particle that migrates); its work is ``work_external`` in
+        `energy`. ``gids=None`` removes it."""
+        err = None
+        if gids is None:
+            new = None
+        else:
+            gids = np.asarray(gids, np.int64).ravel()
+            f = np.broadcast_to(np.asarray(force, float), (len(gids), 3)).copy()
+            if len(gids) and (gids.min() < 0 or gids.max() >= self.ngid):
+                err = ValueError(f"set_external_force: gids must lie in [0, {self.ngid}), got "
+                                 f"{gids.min()}..{gids.max()}")
+            elif len(np.unique(gids)) != len(gids):
+                err = ValueError("set_external_force: gids repeat")
+            elif not np.isfinite(f).all():
+                err = ValueError("set_external_force: force is not finite")
+            elif self.dim == 2 and (f[:, 2] != 0).any():
+                err = ValueError("set_external_force: force[:, 2] must be 0 for 2D disks")
+            elif self.local is not None:
+                mine = self.owned & np.isin(self.gid, gids)
+                if (self.local.p.kind[mine] != FREE).any():
+                    err = ValueError("set_external_force: gids must be FREE particles (the "
+                                     "others' motion is prescribed)")
+            order = np.argsort(gids)
+            new = (gids[order], f[order])
+        _agree(self.comm, err)
+        self._ext = new
+        self._install_external(included=False)
+
+    def _install_external(self, included: bool) -> None:
+        """Hand the local run its owned share of the external forces (``included``: its
+        force arrays, carried from the last local run or a state, hold them already)."""
+        s = self.local
+        if s is None:
+            return
+        if self._ext is None:
+            s.set_external_force(None, None)
+            return
+        gids, f = self._ext
+        rows = np.flatnonzero(self.owned & np.isin(self.gid, gids))
+        mine = f[np.searchsorted(gids, self.gid[rows])]
+        if included:
+            s.p.force[rows] -= mine
+        s.set_external_force(rows, mine)
+
     # ---------------------------------------------------------------- state (collective)
     def state_dict(self) -> dict:
         """This rank's part of the run's state, flat and ``np.savez``-ready (one file per
@@ -754,7 +805,9 @@ class DistributedSimulation:
         self.decompositions, self.migrated = int(d["decompositions"]), int(d["migrated"])
         self._e0, self._shadow0 = float(d["initial"]), float(d["initial_shadow"])
         self._unbooked0, self._relisted = float(d["unbooked0"]), bool(d["relisted"])
-        self._bank = {k: float(d[f"bank.{k}"]) for k in _SUMS}
+        # bank.external: absent from states written before external forces were distributed
+        self._bank = {k: float(d.get(f"bank.{k}", 0.0)) for k in _SUMS}
+        self._install_external(included=True)
         self._good = None
         self._check()
 
@@ -825,14 +878,13 @@ class DistributedSimulation:
         t = self._totals()
         stored = (t["kinetic_translational"] + t["kinetic_rotational"] - t["shadow"]
                   + t["elastic"] + t["dissipated"])
-        work = t["gravity"] + t["walls"] + t["ghosts"] + t["cell"]
+        work = t["gravity"] + t["walls"] + t["ghosts"] + t["cell"] + t["external"]
         return dict(kinetic_translational=t["kinetic_translational"],
                     kinetic_rotational=t["kinetic_rotational"], elastic=t["elastic"],
                     dissipated_damping=t["dissipated"] - t["friction"],
                     dissipated_friction=t["friction"], work_gravity=t["gravity"],
                     work_walls=t["walls"], work_ghosts=t["ghosts"], work_cell=t["cell"],
-                    # external forces (Simulation.set_external_force) are not distributed yet
-                    work_external=0.0, shadow=t["shadow"], initial=self._e0,
+                    work_external=t["external"], shadow=t["shadow"], initial=self._e0,
                     balance=stored - work - (self._e0 - self._shadow0))
 
     def gather(self, root: int = 0) -> dict | None:

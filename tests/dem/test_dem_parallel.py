@@ -105,6 +105,40 @@ def test_caller_ownership_matches_serial():
     assert follow > 0.9  # owners follow the slabs
 
 
+@pytest.mark.mpi
+def test_external_forces_follow_their_particles_across_ranks():
+    """`DistributedSimulation.set_external_force` by global id equals the serial run's
+    `Simulation.set_external_force` on the same rows (a sideways and upward pull on a third of
+    the grains while they fall through the cut, then replaced, then removed), the external
+    work included in the ledger; bad ids are refused by name on every rank."""
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    p, mat, walls = settling_box()
+    rows = np.arange(0, p.n, 3)
+    pull = np.tile([2e-5, 0.0, 1e-4], (len(rows), 1))     # [N], of the order of the weights
+    sim = dem.Simulation(copy(p), mat, walls, (0, 0, -9.81))
+    across_z = RecursiveBisection.from_points(p.x, comm.size, axes=(2,))
+    dsim = DistributedSimulation(p if comm.rank == 0 else None, mat, walls, (0, 0, -9.81),
+                                 comm=comm, owner=across_z, halo_skin=0.2 * R)
+    for run in (sim, dsim):
+        run.step(50)
+        run.set_external_force(rows, pull)
+        run.step(100)
+        run.set_external_force(rows[::2], -pull[::2])
+        run.step(100)
+        run.set_external_force(None, None)
+        run.step(50)
+    assert_same_as_serial(dsim, sim)
+    assert abs(sim.energy()["work_external"]) > 1e-3 * sim.energy()["initial"]
+    if comm.size > 1:
+        assert dsim.decompositions > 5 and dsim.migrated > 0
+    with pytest.raises(ValueError, match="gids must lie in"):
+        dsim.set_external_force([p.n], (0.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="gids repeat"):
+        dsim.set_external_force([1, 1], (0.0, 0.0, 1.0))
+
+
 def test_one_rank_equals_simulation_exactly():
     """On one rank the run is the plain `Simulation` bit for bit and never decomposes
     again (no halo to go stale); decompositions forced between calls rebuild the local
