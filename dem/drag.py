@@ -114,7 +114,7 @@ class GroupDrag:
         p = sim.p
         _group_drag(p.v, p.force, p.mass, p.kind, sim.gravity, sim.dt, self.group,
                     self.weight, self.alpha, self.axes, self.u_ref, self._sw, self._sa,
-                    self._su, self.force, sim._hit)
+                    self._su, self.force, sim.forced)
 
     def hook(self, sim):
         """A `dem.Simulation.step` hook applying the drag every step (never ends the call)."""

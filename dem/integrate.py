@@ -568,6 +568,14 @@ class Simulation:
         self._ghosts = self._ghost_index()
         self._at = self._positions()
 
+    @property
+    def forced(self) -> np.ndarray:
+        """(n,) int8 flags of the rows whose forces the kicks read (set by the force pass for
+        every particle in contact, and for the rows of `set_external_force`); a step hook
+        that adds a force to a row must set its flag, or a grain out of contact keeps the
+        force in a row no kick reads (`dem.drag.GroupDrag`)."""
+        return self._hit
+
     def external_force(self):
         """(rows (k,), forces (k, 3) [N]) of `set_external_force` (empty if none)."""
         if self._ext is None:
