@@ -291,6 +291,12 @@ def compare(bc: str) -> dict:
         "f_s_mean": np.mean([smoothed(r, "f_s", grid) for r in full], axis=0).tolist(),
         "q_c_steady_mean": ref_tail,
         "one_packing_rms_vs_average": float(np.mean([rms(q) for q in q_full])),
+        # each packing against the average of the others: what one more packing of the
+        # reference would be off by (the average above includes the packing itself, which
+        # pulls it closer by sqrt((N - 1) / N))
+        "one_packing_rms_vs_others": float(np.mean([
+            np.sqrt(np.mean((q[embedded] - np.delete(q_full, k, axis=0).mean(axis=0)[embedded]) ** 2)) / scale
+            for k, q in enumerate(q_full)])) if len(full) > 1 else None,
         "one_packing_steady_vs_average": float(np.mean([abs(tail_mean([r]) - ref_tail) / abs(ref_tail)
                                                          for r in full])),
         "standard_error_of_average": float(np.sqrt(np.mean(q_full[:, embedded].var(axis=0, ddof=1))
