@@ -13,7 +13,7 @@ top row (:mod:`coupling.apps.penetration.chamber`), sides rigid, then pushed wit
 - BC1: constant vertical and lateral stress (the side walls replaced by the forces they
   carried after consolidation: a flexible membrane).
 
-Reference: full DEM of the whole chamber, ``--seeds`` packings (lattice jitter and radii
+Reference: full DEM of the whole chamber, ``--reference-seeds`` packings (lattice jitter and radii
 drawn per seed). Coupled: the same chamber with DE windows of half width ``--windows`` [m]
 (the rest a micropolar continuum carrying the increment from the consolidated state: top
 traction-free, sides on rollers (BC3) or traction-free (BC1)), the same packings' seeds.
@@ -67,7 +67,9 @@ parser.add_argument("--velocity", type=float, default=1.0, help="push velocity [
 parser.add_argument("--windows", type=float, nargs="+", default=[0.03] if SHORT else [0.045, 0.06, 0.075],
                     help="DE window half widths [m]")
 parser.add_argument("--bcs", nargs="+", default=["BC3", "BC1"] if not SHORT else ["BC3"])
-parser.add_argument("--seeds", type=int, default=2 if SHORT else 3)
+parser.add_argument("--seeds", type=int, default=2 if SHORT else 3, help="packings of each coupled case")
+parser.add_argument("--reference-seeds", type=int, default=None,
+                    help="packings of the full-DEM reference (default --seeds)")
 parser.add_argument("--smooth", type=float, default=0.006, help="depth window of the q_c filter [m]")
 parser.add_argument("--interface", default="loose", choices=["loose", "iqn-ils"],
                     help="the coupled cases' exchange (coupling.interface)")
@@ -260,11 +262,21 @@ def cpu_total(runs: list[dict]) -> float | None:
     return float(np.mean([r["setup_cpu_s"] + r["push_cpu_s"] for r in runs]))
 
 
+def comparison_noise(reference: dict, q_runs: list, embedded, scale: float, n_ref: int) -> float | None:
+    """sqrt(s_ref^2 / N_ref + s_case^2 / N_case) [relative]: the expected RMS difference of
+    the two averages if the case had no bias (s: packing scatters, sample variances)."""
+    if len(q_runs) < 2:
+        return None
+    s_case = np.sqrt(np.mean(np.array(q_runs)[:, embedded].var(axis=0, ddof=1))) / scale
+    return float(np.sqrt(reference["packing_scatter"] ** 2 / n_ref + s_case**2 / len(q_runs)))
+
+
 def compare(bc: str) -> dict:
     seeds = list(range(1, args.seeds + 1))
+    ref_seeds = list(range(1, (args.reference_seeds or args.seeds) + 1))
     if args.reference is not None:
-        seed_reference(bc, seeds)
-    full = [run_case(bc, s, None) for s in seeds]
+        seed_reference(bc, ref_seeds)
+    full = [run_case(bc, s, None) for s in ref_seeds]
     grid = np.array(full[0]["depth"])
     prm = parameters(bc, 1, None)
     # compare once the cone tip is a third of its height into the grains
@@ -300,7 +312,10 @@ def compare(bc: str) -> dict:
         "one_packing_steady_vs_average": float(np.mean([abs(tail_mean([r]) - ref_tail) / abs(ref_tail)
                                                          for r in full])),
         "standard_error_of_average": float(np.sqrt(np.mean(q_full[:, embedded].var(axis=0, ddof=1))
-                                                   / len(seeds)) / scale),
+                                                   / len(ref_seeds)) / scale),
+        # a packing's scatter about the sand's mean (sample variance, ddof 1): the
+        # one-packing RMS above is this x sqrt((N - 1) / N)
+        "packing_scatter": float(np.sqrt(np.mean(q_full[:, embedded].var(axis=0, ddof=1))) / scale),
         "runs": full}
     print(f"{bc} full DEM: {reference['grains']} grains, one packing against the average "
           f"{reference['one_packing_rms_vs_average']:.1%} RMS, standard error of the average "
@@ -335,6 +350,10 @@ def compare(bc: str) -> dict:
                 "q_c_rms_error": rms(q),
                 "q_c_steady_error": abs(tail_mean(runs) - ref_tail) / abs(ref_tail),
                 "q_c_rms_error_per_packing": [rms(smoothed(r, "q_c", grid)) for r in runs],
+                # what the error of two averages is from packing scatter alone (the
+                # reference's and this case's, each over its packings), no bias
+                "comparison_noise": comparison_noise(reference, [smoothed(r, "q_c", grid) for r in runs],
+                                                     embedded, scale, len(full)),
                 "q_c_mean": q.tolist(),
                 "f_s_mean": np.mean([smoothed(r, "f_s", grid) for r in runs], axis=0).tolist(),
                 "split_s_mean": {k: float(np.mean([r["split_s"][k] for r in runs])) for k in runs[0]["split_s"]},
