@@ -61,30 +61,42 @@ class _FieldLayout:
         self.global_cols = imap.local_to_global(blocks.astype(np.int32)) * bsV + np.arange(
             self.n_parent_local
         ) % bsV
+        self._pattern = None  # (cells, order, indptr, indices, global indices) of the last rows
+        self._last = None     # (indices of the last rows returned, their global indices)
 
     def rows(self, cells: np.ndarray, X: np.ndarray) -> sp.csr_matrix:
-        """Owned rows ``p * bs + k`` over the local parent dofs for points in cells at X."""
+        """Owned rows ``p * bs + k`` over the local parent dofs for points in cells at X.
+
+        A row holds the ``nd`` distinct dofs of its cell, columns ascending. The pattern
+        (which entry goes where) depends on the cells alone: it is kept while they stay the
+        same, so a particle that moves inside its cell costs a tabulation and a gather (the
+        pore fluid re-evaluates three bases every fluid step)."""
         bs, n = self.bs, len(cells)
         if n == 0:
             return sp.csr_matrix((0, self.n_parent_local))
         phi = self.scalar.tabulate(0, X)[0, :, :, 0]  # (n, ndofs)
-        cdofs = self.Vc.dofmap.list[cells]  # (n, ndofs)
-        nd = cdofs.shape[1]
-        rows = np.repeat(np.arange(n * bs), nd)
-        cols = self.parent[(cdofs[:, None, :] * bs + np.arange(bs)[None, :, None])].ravel()
         vals = np.repeat(phi[:, None, :], bs, axis=1).ravel()
-        local = sp.csr_matrix((vals, (rows, cols)), shape=(n * bs, self.n_parent_local))
-        local.sum_duplicates()
-        local.sort_indices()
+        if self._pattern is None or not np.array_equal(self._pattern[0], cells):
+            cdofs = self.Vc.dofmap.list[cells]  # (n, ndofs)
+            nd = cdofs.shape[1]
+            rows = np.repeat(np.arange(n * bs), nd)
+            cols = self.parent[(cdofs[:, None, :] * bs + np.arange(bs)[None, :, None])].ravel()
+            order = np.lexsort((cols, rows))
+            indices = cols[order]
+            self._pattern = (np.array(cells, copy=True), order, np.arange(0, n * bs * nd + 1, nd),
+                             indices, self.global_cols[indices].astype(PETSc.IntType))
+        _, order, indptr, indices, global_indices = self._pattern
+        local = sp.csr_matrix((vals[order], indices, indptr), shape=(n * bs, self.n_parent_local))
+        self._last = (local.indices, global_indices)   # (scipy may have cast the indices)
         return local
 
     def csr(self, local: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(indptr, global columns, values) of the owned rows, as PETSc takes them."""
-        return (
-            local.indptr.astype(PETSc.IntType),
-            self.global_cols[local.indices].astype(PETSc.IntType),
-            local.data,
-        )
+        if self._last is not None and local.indices is self._last[0]:
+            cols = self._last[1]
+        else:
+            cols = self.global_cols[local.indices].astype(PETSc.IntType)
+        return local.indptr.astype(PETSc.IntType), cols, local.data
 
 
 @dataclass
