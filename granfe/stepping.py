@@ -80,10 +80,12 @@ def follow_load_path(problem, apply: Callable[[float], None], t_end: float,
         apply(t + h)
         try:
             tolerances = None
-            if control.load_tol is not None:
+            # (no load increment, no residual to scale by: the solver's own tolerances)
+            increment = problem.residual_norm() if control.load_tol is not None else 0.0
+            if increment > 0:
                 snes = problem.solver()
                 tolerances = snes.getTolerances()
-                snes.setTolerances(rtol=0.0, atol=control.load_tol * problem.residual_norm())
+                snes.setTolerances(rtol=0.0, atol=control.load_tol * increment)
             if len(states) == 2:
                 (t0, w0), (t1, w1) = states
                 problem.w.x.array[:] = w1 + (t + h - t1) / (t1 - t0) * (w1 - w0)
