@@ -336,6 +336,7 @@ def compare(bc: str) -> dict:
         q = np.mean([smoothed(r, "q_c", grid) for r in runs], axis=0)
         total = float(np.mean([r["setup_s"] + r["push_s"] for r in runs]))
         push = float(np.mean([r["push_s"] for r in runs]))
+        cpu = cpu_total(runs)
         case = {"window_half_width": window, "continuum": continuum, "constants": constants,
                 "hardening": hardening, "grains": runs[0]["grains"],
                 "dofs": runs[0]["dofs"],
@@ -344,9 +345,9 @@ def compare(bc: str) -> dict:
                 "peak_memory_mb": max(r["peak_memory_mb"] for r in runs),
                 "speedup_total": reference["total_s_mean"] / total,
                 "speedup_push": reference["push_s_mean"] / push,
-                "total_cpu_s_mean": cpu_total(runs),
-                "speedup_total_cpu": (reference["total_cpu_s_mean"] / cpu_total(runs)
-                                      if reference["total_cpu_s_mean"] and cpu_total(runs) else None),
+                "total_cpu_s_mean": cpu,
+                "speedup_total_cpu": (reference["total_cpu_s_mean"] / cpu
+                                      if reference["total_cpu_s_mean"] and cpu else None),
                 "q_c_rms_error": rms(q),
                 "q_c_steady_error": abs(tail_mean(runs) - ref_tail) / abs(ref_tail),
                 "q_c_rms_error_per_packing": [rms(smoothed(r, "q_c", grid)) for r in runs],

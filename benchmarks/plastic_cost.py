@@ -17,14 +17,16 @@ the whole path. The plastic path is run four times, each adding one change to th
   point whose trial value round-off put below the cone (about half of them);
 - ``plastic``: the model now: those points take the elastic-plastic tangent of the last
   converged step (the tangent predictor, :meth:`MicropolarDruckerPrager._return`);
-- ``plastic_secant_tol``: Newton starts from the secant predictor of
-  ``demos/2d/biaxial_shear_band.py`` (the last two converged states extrapolated) and stops at
-  ``--load-tol`` (1e-8) of the norm of the load increment's residual (the residual of the new
-  loads on the last converged state, one residual assembly), instead of 1e-10 of the step's
-  own first residual (which a good predictor makes small, so that it asked for more);
+- ``plastic_secant_tol``: Newton starts from the secant predictor (the last two converged
+  states extrapolated) and stops at ``--load-tol`` (1e-8) of the norm of the load increment's
+  residual (the residual of the new loads on the last converged state, one residual
+  assembly), instead of 1e-10 of the step's own first residual (which a good predictor makes
+  small, so that it asked for more): ``granfe.stepping.StepControl(predictor="secant",
+  load_tol=...)``;
 - ``plastic_secant_tol_one_lu``: one LU factorisation a step: the tangent of the step's first
   iteration preconditions GMRES on the assembled tangent of the later iterations (PETSc's
-  ``snes_lag_preconditioner``, reset at every solve; Newton's iterates are unchanged).
+  ``snes_lag_preconditioner``, reset at every solve; Newton's iterates are unchanged):
+  ``granfe.solvers.ONE_LU_PER_STEP``.
 
 The punch force at the end is recorded for each (they agree to 9 digits). Not taken: a lower
 quadrature degree (for P1/P1 the return is the same at the 4 points of a tetrahedron, but one
@@ -60,6 +62,7 @@ from granfe.models.micropolar import Micropolar
 from granfe.probe import probe
 from granfe.problem import ContinuumProblem
 from granfe.solvers import ONE_LU_PER_STEP
+from granfe.stepping import StepControl, follow_load_path
 from meshes.penetration import build_chamber
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
@@ -128,20 +131,24 @@ def push(data, names, variant: Variant, tag: str) -> dict:
         problem.fix(under_punch, c, float(v))       # rough, from where gravity left it
     settle = problem.fix(under_punch, "u_z", float(top[2]))
     problem.solve()                                   # builds the solver (not timed)
-    history = [problem.w.x.array.copy()]
-    times, cpu, its = [], [], []
-    for k in range(1, args.steps + 1):
-        settle.value = top[2] - k * args.settlement / args.steps
+    # equal steps (a failed one ends the path); the secant predictor and the load tolerance
+    # are granfe.stepping's
+    h = args.settlement / args.steps
+    control = StepControl(first=h, min_step=h, max_step=h, predictor="secant" if variant.secant else "last",
+                          load_tol=variant.load_tol)
+    times, cpu, its, start = [], [], [], [0.0, 0.0]
+
+    def apply(t):
+        settle.value = top[2] - t
         comm.barrier()
-        t0, c0 = time.perf_counter(), time.process_time()
-        if variant.load_tol is not None:            # converged at load_tol of the increment's residual
-            problem.snes.setTolerances(rtol=0.0, atol=variant.load_tol * problem.residual_norm())
-        if variant.secant and len(history) == 2:    # equal steps: w_k = 2 w_(k-1) - w_(k-2)
-            problem.w.x.array[:] = 2 * history[1] - history[0]
-        its.append(problem.solve())
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-        history = (history + [problem.w.x.array.copy()])[-2:]
+        start[:] = time.perf_counter(), time.process_time()
+
+    def record(t, n):
+        times.append(time.perf_counter() - start[0])
+        cpu.append(time.process_time() - start[1])
+        its.append(n)
+
+    follow_load_path(problem, apply, args.settlement, control, on_step=record)
     force = -problem.reaction(under_punch, "u_z")   # the punch force at the end [N]
     yielding = problem.state.owned("yielding") if problem.state else np.zeros(0)
     share = comm.allreduce(float(yielding.sum()), MPI.SUM) / max(comm.allreduce(yielding.size, MPI.SUM), 1)
@@ -185,15 +192,12 @@ class Variant:
     options: dict = field(default_factory=dict)
 
 
-# one LU factorisation per step: the tangent of the step's first iteration preconditions GMRES
-# on the assembled tangent of every later iteration (Newton stays Newton)
 LOAD_TOL = args.load_tol
-ONE_LU = ONE_LU_PER_STEP
 VARIANTS = {"elastic": Variant(Micropolar, elastic),
             "plastic_trial_tangent": Variant(TrialTangent, plastic),
             "plastic": Variant(MicropolarDruckerPrager, plastic),
             "plastic_secant_tol": Variant(MicropolarDruckerPrager, plastic, True, LOAD_TOL),
-            "plastic_secant_tol_one_lu": Variant(MicropolarDruckerPrager, plastic, True, LOAD_TOL, ONE_LU)}
+            "plastic_secant_tol_one_lu": Variant(MicropolarDruckerPrager, plastic, True, LOAD_TOL, ONE_LU_PER_STEP)}
 PLASTIC = [k for k in VARIANTS if k != "elastic"]
 
 # ---- measure ---------------------------------------------------------------------------
