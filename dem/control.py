@@ -53,19 +53,30 @@ class ServoWall:
         w.velocity[self.wall] = speed * w.normal[self.wall]
 
 
-def unbalanced_force_ratio(sim) -> float:
-    """``sum_i |F_i + m_i g| / sum_i |C_i|`` over FREE particles (0 in equilibrium), F the
-    force on a particle (contacts and `Simulation.set_external_force`), C its contact part."""
+def unbalanced_force_sums(sim, rows=None) -> tuple[float, float]:
+    """``(sum_i |F_i + m_i g|, sum_i |C_i|)`` [N] over the FREE particles of a `Simulation`
+    (and of the bool mask ``rows`` (n,) if given: a rank's owned ones), F the force on a
+    particle (contacts and `Simulation.set_external_force`), C its contact part."""
     p = sim.p
     f = p.kind == FREE
+    if rows is not None:
+        f &= rows
     net = p.force[f] + p.mass[f, None] * sim.gravity
     c = p.force.copy()
-    rows, fext = sim.external_force()
-    c[rows] -= fext
-    contact = np.linalg.norm(c[f], axis=1).sum()
+    ext, fext = sim.external_force()
+    c[ext] -= fext
+    return float(np.linalg.norm(net, axis=1).sum()), float(np.linalg.norm(c[f], axis=1).sum())
+
+
+def unbalanced_force_ratio(sim) -> float:
+    """``sum_i |F_i + m_i g| / sum_i |C_i|`` over FREE particles (0 in equilibrium), F the
+    force on a particle (contacts and `Simulation.set_external_force`), C its contact part.
+    Collective on a `dem.DistributedSimulation` (its sums over the ranks' owned particles)."""
+    sums = getattr(sim, "unbalanced_force_sums", None)  # a DistributedSimulation's
+    net, contact = sums() if sums is not None else unbalanced_force_sums(sim)
     if contact == 0.0:
         return math.inf
-    return float(np.linalg.norm(net, axis=1).sum() / contact)
+    return float(net / contact)
 
 
 def advance(sim, n: int, controllers=()) -> None:
@@ -81,7 +92,9 @@ def relax(sim, tol: float = 1e-4, max_steps: int = 200_000, damping: float | Non
     """Dynamic relaxation to static equilibrium; returns steps, ratio and energy removed.
 
     ``damping`` c [1/s] defaults to ``0.02 / dt`` (2 % of the velocity per step). Raises
-    ``RuntimeError`` naming the ratio reached if ``max_steps`` are not enough.
+    ``RuntimeError`` naming the ratio reached if ``max_steps`` are not enough. ``sim``: a
+    `Simulation`, or a `dem.DistributedSimulation` (collective; no controllers: their hook
+    would run on one rank's share of the walls).
     """
     if not 0 < tol < 1:
         raise ValueError(f"tol must lie in (0, 1), got {tol!r}")

@@ -25,6 +25,13 @@ decomposition migrates particles to their new owners with the forces of the last
 their contact history, keyed by global ids: a pair's history is authoritative on the owner
 of its lower-id particle, which sends it to both new owners.
 
+Prescribed GHOST motions (``step(prescribed=...)``, rows by global id) are packed once per
+call and written by every rank into the copies it holds, owned and halo, with the
+coefficients of the call's step (a call split into local calls writes the serial bits); the
+first step's state is written before the halo exchange, so that a jump of the motion is seen
+by the displacement criterion and a decomposition. ``decay`` damps the owned FREE particles
+in the local run, and the halo prediction applies it where the integrator does.
+
 The energy ledger (`DistributedSimulation.energy`) books every term once: a particle's
 kinetic energy and works on its owner, a pair's elastic energy and the change of its
 spring energy on the owner of its lower id, a wall contact on the particle's owner (a halo
@@ -44,10 +51,12 @@ import numpy as np
 from numba import njit
 
 from dem.contact import HIST, ContactMaterial
+from dem.control import unbalanced_force_sums
 from dem.errors import BlowUpError, DomainError, TimeStepError
 from dem.forces import NOUT, pair_forces
 from dem.integrate import Simulation, _kinetic_finite
 from dem.neighbours import carry_history
+from dem.prescribed import _prescribe
 from dem.state import FREE, GHOST, Particles
 from dem.timestep import DEFAULT_SAFETY, choose_dt, critical_dt
 from dem.walls import PlaneWall, WallSet
@@ -56,11 +65,14 @@ __all__ = ["DistributedSimulation", "RecursiveBisection"]
 
 # particle rows exchanged at a decomposition: global id, state, the forces of the last step
 # (the next half-kick needs them) with their conservative and damping parts (the next drift
-# books their half of the step's work)
+# books their half of the step's work), and where the last force pass saw the particle (XAT:
+# a prescribed GHOST may have been moved on since, and the ledger books its work over the
+# displacement from there)
 GID, X, V, W, RAD, MASS, INER, MAT, KIND = 0, slice(1, 4), slice(4, 7), slice(7, 10), 10, 11, \
     12, 13, 14
 F, T, FE, FD, TD = slice(15, 18), slice(18, 21), slice(21, 24), slice(24, 27), slice(27, 30)
-NCOL = 30
+XAT = slice(30, 33)
+NCOL = 33
 # contact history rows: global ids (pair: i < j; wall: particle, wall), history (HIST: spring
 # and the dashpot's history, `dem.contact`), slip, energy
 HCOL = 4 + HIST
@@ -142,22 +154,33 @@ def _cut_axes(gravity):
 # ---------------------------------------------------------------- kernels
 @njit(cache=True)
 def _predict(x, v, omega, force, torque, mass, inertia, kind, owned, slot, g, h, dt, kicks,
-             xref, buf):
+             decay, xref, buf):
     """One pass over the local rows after ``kicks`` half-kicks (h [s]) with the forces now
     and a drift (dt [s]) (1 between two steps, 2 from a step's force pass: its second
-    half-kick, then the next step's first). Returns the largest squared distance [m^2] of
-    an owned particle from xref then (a criterion: rounding aside; not FREE: after dt v,
-    the prescribed motion) and writes rows [x, v, omega] (9,) of the particles with
-    slot >= 0 to buf[slot] as `Simulation.step` will make them (FREE: the same operations
-    in the same order, so the same bits; the others as prescribed now)."""
+    half-kick, then the next step's first), v and omega scaled by ``decay`` before the
+    last half-kick (`Simulation.step` damps before a step's drift; 1.0: no damping, and
+    x 1.0 changes no bit). Returns the largest squared distance [m^2] of an owned particle
+    from xref then (a criterion: rounding aside; not FREE: after dt v, the prescribed
+    motion) and writes rows [x, v, omega] (9,) of the particles with slot >= 0 to
+    buf[slot] as `Simulation.step` will make them (FREE: the same operations in the same
+    order, so the same bits; the others as prescribed now)."""
     d2 = 0.0
     hk = kicks * h
+    hl = hk - h  # the half-kicks before the damping
     for i in range(x.shape[0]):
-        if kind[i] == 0:  # FREE: owned (halo copies are GHOST)
+        if kind[i] == 0 and decay == 1.0:  # FREE: owned (halo copies are GHOST)
             a = hk / mass[i]
             b0 = x[i, 0] + dt * (v[i, 0] + a * force[i, 0] + hk * g[0]) - xref[i, 0]
             b1 = x[i, 1] + dt * (v[i, 1] + a * force[i, 1] + hk * g[1]) - xref[i, 1]
             b2 = x[i, 2] + dt * (v[i, 2] + a * force[i, 2] + hk * g[2]) - xref[i, 2]
+        elif kind[i] == 0:
+            a, b = hl / mass[i], h / mass[i]
+            b0 = x[i, 0] + dt * (decay * (v[i, 0] + a * force[i, 0] + hl * g[0])
+                                 + b * force[i, 0] + h * g[0]) - xref[i, 0]
+            b1 = x[i, 1] + dt * (decay * (v[i, 1] + a * force[i, 1] + hl * g[1])
+                                 + b * force[i, 1] + h * g[1]) - xref[i, 1]
+            b2 = x[i, 2] + dt * (decay * (v[i, 2] + a * force[i, 2] + hl * g[2])
+                                 + b * force[i, 2] + h * g[2]) - xref[i, 2]
         elif owned[i]:
             b0 = x[i, 0] + dt * v[i, 0] - xref[i, 0]
             b1 = x[i, 1] + dt * v[i, 1] - xref[i, 1]
@@ -172,7 +195,10 @@ def _predict(x, v, omega, force, torque, mass, inertia, kind, owned, slot, g, h,
             if kind[i] == 0:
                 u = v[i, c]
                 w = omega[i, c]
-                for _ in range(kicks):
+                for q in range(kicks):
+                    if q == kicks - 1:
+                        u *= decay
+                        w *= decay
                     u += h * (force[i, c] / mass[i] + g[c])
                     w += h * torque[i, c] / inertia[i]
                 buf[k, c] = x[i, c] + dt * u
@@ -258,6 +284,22 @@ class _LocalSimulation(Simulation):
     def _check(self):
         pass
 
+    def positions_at_last_pass(self) -> np.ndarray:
+        """(n, 3) [m]: where the last force pass saw each row (the ledger's ghost positions
+        for the owned GHOSTs, which a prescribed motion may have moved since; x for the
+        rest)."""
+        x = self.p.x.copy()
+        if len(self._ghosts):
+            x[self._ghosts] = self._at[0]
+        return x
+
+    def set_positions_at_last_pass(self, x) -> None:
+        """The inverse of `positions_at_last_pass` for a run built from carried rows: its
+        constructor took the ghosts' positions now (the next step books their work from the
+        last force pass, as the serial run does)."""
+        if len(self._ghosts):
+            self._at = (x[self._ghosts].copy(), self._at[1])
+
     def _prune(self, nl):
         keep = ~(self.halo[nl.pi] & self.halo[nl.pj])
         if not keep.all():
@@ -267,6 +309,25 @@ class _LocalSimulation(Simulation):
         if not keep.all():
             nl.wi, nl.ww = nl.wi[keep], nl.ww[keep]
             nl.whist, nl.wslip, nl.wetan = nl.whist[keep], nl.wslip[keep], nl.wetan[keep]
+
+
+class _LocalMotion:
+    """The rows of one local run in a `Prescribed` packed by global id, from step ``start``
+    of the distributed `step` call on: what `Simulation.step` takes as ``prescribed`` (it
+    calls ``pack``). A call split into several local calls so writes the same bits at
+    every step as one serial call (the coefficients of step s are taken, not recomputed
+    for a shorter call)."""
+
+    def __init__(self, arrays, coef, start):
+        self.arrays, self.coef, self.start = arrays, coef, start
+
+    def pack(self, n, dt, kind):  # (the rows were checked on the global kinds)
+        return (*self.arrays, self.coef[self.start:self.start + n])
+
+    def write(self, p) -> None:
+        """The state of the first step into p's rows (before that step's drift, as the
+        local call will write it)."""
+        _prescribe(0, *self.pack(1, 0.0, None), p.x, p.v, p.omega)
 
 
 # ---------------------------------------------------------------- the distributed run
@@ -290,6 +351,13 @@ class DistributedSimulation:
             2 x skin, 6 decompositions instead of 11): halo width 2 r_max + halo_skin; a
             new decomposition when a particle would move more than halo_skin / 2 since
             the last one (one rank: never, there is no halo).
+
+    As `dem.Simulation`: ``step(n, prescribed=..., decay=...)`` (motions by global id),
+    `damping_removed`, `set_external_force` (by global id), `energy`, and `dem.relax` and
+    `dem.unbalanced_force_ratio` take it (collectively). By global id: `values_of`
+    (x, v, omega, force, torque of particles from their owners), `force_on` and
+    `torque_on` (a clump's resultant). Set dt through the constructor (the local runs
+    keep the one they were built with).
 
     Attributes: ``local`` (this rank's `Simulation`, None if it holds no particle),
     ``owned`` (bool mask of its owned particles), ``gid`` (their global ids), ``time``,
@@ -318,7 +386,9 @@ class DistributedSimulation:
         # this rank's share of the ledger sums over the local runs before the present one,
         # and the spring energy of the present run's pairs another rank books, at its start
         self._bank = dict.fromkeys(_SUMS, 0.0)
+        self._damped = 0.0  # its share of `damping_removed` likewise
         self._unbooked0 = 0.0
+        self._pk = self._decay = None  # a step call's prescribed motions and damping
         self.local, self._plan = None, None
         self._ext = None   # (global ids (k,) sorted, forces (k, 3) [N]) of set_external_force
         self._decompose(chunk)
@@ -341,10 +411,14 @@ class DistributedSimulation:
                 if p.material.max(initial=0) >= len(self.materials):
                     raise ValueError(f"particles.material refers to material "
                                      f"{p.material.max()} but only {len(self.materials)} given")
+                if len(self.walls) and self.walls.material.max() >= len(self.materials):
+                    # (checked here: a rank whose local run would find it alone would hang)
+                    raise ValueError("a PlaneWall.material index is beyond the material list")
                 safety = DEFAULT_SAFETY[self.materials[0].law] if safety is None else safety
                 dt = choose_dt(dt, critical_dt(p, self.materials, v_max), safety, force_dt)
-                p.check_overlaps(allow=allow_overlap)
                 rmax = float(p.radius.max())
+                if not allow_overlap:  # as `Simulation`: round-off contacts are not overlaps
+                    p.check_overlaps(tol=1e-9 * rmax)
                 skin = 0.2 * rmax if skin is None else float(skin)
                 halo_skin = 4.0 * skin if halo_skin is None else float(halo_skin)
                 if not (skin >= 0 and halo_skin > 0):
@@ -355,15 +429,17 @@ class DistributedSimulation:
                 rows[:, X], rows[:, V], rows[:, W] = p.x, p.v, p.omega
                 rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius, p.mass, p.inertia
                 rows[:, MAT], rows[:, KIND] = p.material, p.kind
+                rows[:, XAT] = p.x
                 blocks = np.array_split(rows, comm.size)
                 rcb = None if owner is not None else RecursiveBisection.from_points(
                     p.x, comm.size, _cut_axes(self.gravity))
-                info = (dt, rmax, skin, halo_skin, p.n, p.dim, rcb)
+                info = (dt, rmax, skin, halo_skin, p.n, p.dim, rcb, p.kind.copy())
             except Exception as e:  # raised on every rank, not only here
                 err = e
         _agree(comm, err)
+        # kinds: every particle's kind by global id (a prescribed motion is checked on it)
         (self.dt, self.rmax, self.skin, self.halo_skin, self.ngid, self.dim,
-         self._bisection) = comm.bcast(info, root=0)
+         self._bisection, self._kinds) = comm.bcast(info, root=0)
         return comm.scatter(blocks, root=0)
 
     # ---------------------------------------------------------------- decomposition
@@ -380,6 +456,7 @@ class DistributedSimulation:
         rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius[oi], p.mass[oi], p.inertia[oi]
         rows[:, MAT], rows[:, KIND] = p.material[oi], p.kind[oi]
         rows[:, F], rows[:, T] = p.force[oi], p.torque[oi]
+        rows[:, XAT] = s.positions_at_last_pass()[oi]
         fe, fd, td = s.force_parts()
         rows[:, FE], rows[:, FD], rows[:, TD] = fe[oi], fd[oi], td[oi]
         nl = s.nl
@@ -420,6 +497,7 @@ class DistributedSimulation:
                 return
             s = self.local
             self._bank = self._sums()  # the ledger of this local run: banked
+            self._damped = self._damping_share()
             wf = self._wall_share()
             if s is not None:
                 oi, rows, (kp, pairs), (kw, wall) = self._owned_rows()
@@ -550,6 +628,7 @@ class DistributedSimulation:
             fe[:], fd[:], td[:] = rows[:, FE], rows[:, FD], rows[:, TD]
             self._install_history(sim.nl, pairs, wall)
             sim.history_replaced()
+            sim.set_positions_at_last_pass(rows[:, XAT])
         self._install_external(included=carried)
 
     def _local_run(self, p, is_halo):
@@ -608,7 +687,8 @@ class DistributedSimulation:
             p = s.p
             d2 = _predict(p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia, p.kind,
                           self.owned, self._slot, self.gravity, 0.5 * self.dt, self.dt, kicks,
-                          self._xref, sspec[0])
+                          1.0 if self._decay is None else float(self._decay), self._xref,
+                          sspec[0])
             if len(self._dups[0]):
                 sspec[0][self._dups[0]] = sspec[0][self._dups[1]]
         sspec[0][self._sheads, 0] = d2
@@ -631,34 +711,74 @@ class DistributedSimulation:
         return values
 
     # ---------------------------------------------------------------- stepping
-    def step(self, n: int = 1):
-        """Advance n steps of dt on every rank (collective)."""
+    def step(self, n: int = 1, hook=None, prescribed=None, decay: float | None = None) -> int:
+        """Advance n steps of dt on every rank (collective, the same arguments on every
+        rank); returns n.
+
+        ``prescribed``, ``decay``: as `Simulation.step`, with the motions' rows naming
+        GHOST particles by global id: every rank writes them into the copies it holds
+        (owned and halo) before each step's drift, the same bits as the serial run at
+        every step of the call, through decompositions; ``decay`` scales the owned FREE
+        particles' v and omega before each step's drift, the energy it takes out booked as
+        dissipated and summed in `damping_removed`. ``hook``: not supported (it would run
+        on each rank's local run alone, inside the halo exchange); None only."""
+        if hook is not None:
+            raise ValueError("DistributedSimulation.step takes no hook: act between step "
+                             "calls (a controller of dem.control.relax neither)")
         n = int(n)
-        while n > 0:
-            k = min(n, self.check_every - self.nsteps % self.check_every)
+        self._pk = None if prescribed is None else prescribed.pack(n, self.dt, self._kinds)
+        self._decay = decay
+        at = 0  # steps done in this call (the prescribed coefficients' row)
+        while at < n:
+            k = min(n - at, self.check_every - self.nsteps % self.check_every)
             while k > 0:
-                done = self._advance(k)
-                k, n = k - done, n - done
+                done = self._advance(k, at)
+                k, at = k - done, at + done
             if self.nsteps % self.check_every == 0:
                 self._check()
         if self.nsteps % self.check_every:
             self._check()
+        self._pk = self._decay = None
+        return n
 
-    def _advance(self, n: int) -> int:
+    def _local_motion(self, at: int) -> _LocalMotion | None:
+        """The call's prescribed motions (packed by global id) of the rows this rank holds,
+        from step ``at`` of the call on (None: none here)."""
+        pk, s = self._pk, self.local
+        if pk is None or s is None or len(self.gid) == 0:
+            return None
+        rows = pk[0]
+        loc = np.minimum(np.searchsorted(self.gid, rows), len(self.gid) - 1)  # gid: sorted
+        here = self.gid[loc] == rows
+        if not here.any():
+            return None
+        arrays = (loc[here],) + tuple(np.ascontiguousarray(a[here]) for a in pk[1:8])
+        return _LocalMotion(arrays, pk[8], at)
+
+    def _advance(self, n: int, at: int = 0) -> int:
         """Up to n steps in one call of the local run (one rank: all n; else until the
-        halo would go stale, then a decomposition); returns the steps done."""
+        halo would go stale, then a decomposition), from step ``at`` of the `step` call;
+        returns the steps done."""
+        decay = self._decay
         if self.comm.size == 1:  # no halo, nothing to exchange or decompose
-            done = self.local.step(n)
+            done = self.local.step(n, prescribed=self._local_motion(at), decay=decay)
         else:
+            motion = self._local_motion(at)
+            if motion is not None:
+                # the prescribed particles where the coming drift will see them: the
+                # displacement criterion and a decomposition see a jump of the motion too
+                motion.write(self.local.p)
             if self._exchange(1):
                 self._decompose()
                 if self._exchange(1):
                     raise TimeStepError(f"a particle moves more than halo_skin/2 = "
                                         f"{0.5 * self.halo_skin:.4g} m in one step (dt = "
                                         f"{self.dt:.4g} s): raise halo_skin or lower dt")
+                motion = self._local_motion(at)  # of the new local run
             self._left = n
             if self.local is not None:
-                done = self.local.step(n, hook=self._between_steps)
+                done = self.local.step(n, hook=self._between_steps, prescribed=motion,
+                                       decay=decay)
             else:
                 done = n
                 for k in range(n):
@@ -753,6 +873,7 @@ class DistributedSimulation:
                  decompositions=int(self.decompositions), migrated=int(self.migrated),
                  initial=float(self._e0), initial_shadow=float(self._shadow0),
                  unbooked0=float(self._unbooked0), relisted=bool(self._relisted),
+                 damping_removed=self._damping_share(),
                  gid=self.gid.copy(), owned=self.owned.copy(), xref=self._xref.copy(),
                  has_local=self.local is not None)
         d.update({"plan.send": send.copy(), "plan.recv": recv.copy(),
@@ -807,11 +928,63 @@ class DistributedSimulation:
         self._unbooked0, self._relisted = float(d["unbooked0"]), bool(d["relisted"])
         # bank.external: absent from states written before external forces were distributed
         self._bank = {k: float(d.get(f"bank.{k}", 0.0)) for k in _SUMS}
+        # (the local run restored starts its own count from 0)
+        self._damped = float(d.get("damping_removed", 0.0))
         self._install_external(included=True)
         self._good = None
         self._check()
 
     # ---------------------------------------------------------------- results (collective)
+    def _damping_share(self) -> float:
+        """This rank's kinetic energy taken out by ``step(decay=...)`` so far [J]."""
+        return self._damped + (0.0 if self.local is None else self.local.damping_removed)
+
+    @property
+    def damping_removed(self) -> float:
+        """Kinetic energy taken out by ``step(decay=...)`` so far, all ranks [J] (as
+        `Simulation.damping_removed`; collective: read it on every rank)."""
+        d = self._damping_share()
+        return float(self.comm.allreduce(d)) if self.comm.size > 1 else d
+
+    def unbalanced_force_sums(self) -> np.ndarray:
+        """(sum |F + m g|, sum |C|) [N] over the owned FREE particles of all ranks
+        (`dem.control.unbalanced_force_ratio`'s sums; C: contact part of F)."""
+        v = np.zeros(2) if self.local is None else np.array(
+            unbalanced_force_sums(self.local, self.owned))
+        return self.comm.allreduce(v) if self.comm.size > 1 else v
+
+    def values_of(self, gids, key: str = "force") -> np.ndarray:
+        """(k, 3) ``key`` (x, v, omega, force, torque) of the particles ``gids`` (k,), in
+        that order, from their owners (exact: the other ranks add zeros). E.g. the forces
+        on a prescribed clump's spheres, or where its GHOSTs are."""
+        gids = np.asarray(gids, np.int64).ravel()
+        err = None
+        if key not in ("x", "v", "omega", "force", "torque"):
+            err = ValueError(f"values_of: key must be x, v, omega, force or torque, got {key!r}")
+        elif len(gids) and (gids.min() < 0 or gids.max() >= self.ngid):
+            err = ValueError(f"values_of: gids must lie in [0, {self.ngid}), got "
+                             f"{gids.min()}..{gids.max()}")
+        _agree(self.comm, err)
+        out = np.zeros((len(gids), 3))
+        if self.local is not None and len(self.gid):
+            loc = np.minimum(np.searchsorted(self.gid, gids), len(self.gid) - 1)
+            mine = (self.gid[loc] == gids) & self.owned[loc]
+            out[mine] = getattr(self.local.p, key)[loc[mine]]
+        return self.comm.allreduce(out) if self.comm.size > 1 else out
+
+    def force_on(self, gids) -> np.ndarray:
+        """(3,) [N]: the sum of the forces on the particles ``gids`` (a clump's resultant,
+        its own spheres' contacts included), summed in the order of gids as the serial
+        ``sim.p.force[gids].sum(axis=0)``."""
+        return self.values_of(gids, "force").sum(axis=0)
+
+    def torque_on(self, gids, about) -> np.ndarray:
+        """(3,) [N m]: the moment about the point ``about`` (3,) [m] of the forces and
+        torques on the particles ``gids`` (sum of t_i + (x_i - about) x f_i)."""
+        x, f = self.values_of(gids, "x"), self.values_of(gids, "force")
+        t = self.values_of(gids, "torque")
+        return (t + np.cross(x - np.asarray(about, float), f)).sum(axis=0)
+
     def kinetic_energy(self) -> np.ndarray:
         """(translational, rotational) kinetic energy of all FREE particles [J]."""
         k = np.zeros(2) if self.local is None else self.local.kinetic_energy()

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import dem
+from dem.packing import lattice_packing
 from dem.parallel import DistributedSimulation, RecursiveBisection
 
 R, RHO, STEPS = 1.0e-3, 2650.0, 300
@@ -253,3 +254,104 @@ def test_blowup_writes_the_last_good_state(tmp_path):
     good = np.load(err.value.path)
     assert int(good["step"]) == 5 and np.isfinite(good["v"]).all()
     assert np.array_equal(good["gid"], np.arange(p.n)) and good["x"].shape == (p.n, 3)
+
+
+# ---------------------------------------------------------------- calibration chamber
+def chamber():
+    """A cone-penetration chamber in miniature: 295 spheres on an fcc lattice in a box of
+    smooth side walls (material 1: the grains' material without friction) on a rough
+    floor, and a GHOST clump (a column of overlapping spheres with a small tip sphere) 0.1
+    R above them, off the axis. Returns particles, materials, walls, the clump's rows, the
+    top grains' rows."""
+    from dataclasses import replace
+
+    x, r = lattice_packing((0, 0, 0), (12 * R, 12 * R, 14 * R), R, kind="fcc")
+    top = (x[:, 2] + r).max()
+    zc = top + 0.9 * R + np.arange(6) * 0.8 * R
+    pen = np.column_stack([np.full(6, 6.3 * R), np.full(6, 5.8 * R), zc])
+    pen = np.vstack([pen, pen[:1] - [0.0, 0.0, 0.6 * R]])
+    kind = np.r_[np.zeros(len(x)), np.full(len(pen), dem.GHOST)].astype(np.int8)
+    p = dem.Particles.spheres(np.vstack([x, pen]), np.r_[r, np.full(6, 0.8 * R), 0.3 * R], RHO,
+                              kind=kind)
+    mat = dem.ContactMaterial(E=2.9e7, nu=0.25, density=RHO, friction=0.5, restitution=0.5)
+    walls = dem.box_walls(x.min(axis=0) - R, x.max(axis=0) + R, material=1)
+    walls[4] = dem.PlaneWall(tuple(x.min(axis=0) - R), (0, 0, 1))  # the floor: rough
+    return p, [mat, replace(mat, friction=0.0)], walls, np.arange(len(x), p.n), \
+        np.flatnonzero(x[:, 2] > x[:, 2].max() - R)
+
+
+def consolidate_and_push(run, p, pen, surcharged, blocks=8, substeps=50):
+    """What the penetration's full-DEM reference does to a run (`Simulation` or
+    `DistributedSimulation`), through the calls they share: a surcharge on the top grains,
+    free then damped steps, `dem.relax`, then the clump lowered 0.05 R (a jump, as
+    `lower_penetrator` moves it) and pushed down in blocks by `Translated` (as
+    `coupling.substep.sub_cycle`). Returns relax's record and the clump's force (3,) after
+    each block."""
+    run.set_external_force(surcharged, (0.0, 0.0, -20.0 * p.mass[0] * 9.81))
+    run.step(100)
+    assert run.step(150, decay=0.97) == 150
+    info = dem.relax(run, tol=0.02, max_steps=3000)
+    base = p.x[pen] - [0.0, 0.0, 0.05 * R]
+    depth, forces = 0.0, []
+    for _ in range(blocks):
+        cone = dem.Translated(pen, base, (0.0, 0.0, 1.0), offset=-depth, speed=-1.5)
+        run.step(substeps, prescribed=dem.Prescribed(cone))
+        depth = -float(cone.offsets(substeps, run.dt)[-1])
+        forces.append(run.force_on(pen) if isinstance(run, DistributedSimulation)
+                      else run.p.force[pen].sum(axis=0))
+    return info, np.array(forces)
+
+
+@pytest.mark.mpi
+def test_prescribed_clump_decay_and_relax_match_serial():
+    """The calibration chamber's calls on two ranks equal the serial run: `step` with
+    ``decay`` (and `damping_removed`), `dem.relax` (its steps, ratio and energy removed)
+    and the GHOST clump pushed by `Translated` through ``step(prescribed=...)`` by global
+    id, crossing the cut between the ranks (it migrates; each rank writes its owned and
+    halo copies) after a jump; smooth walls of a second material. Positions of every
+    particle, the clump's force, the energy ledger: to round-off."""
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    p, mats, walls, pen, surcharged = chamber()
+    zcut = p.x[surcharged, 2].min() - 0.5 * R  # the clump's tip crosses it in the push
+
+    def slabs(x):
+        return np.where(x[:, 2] < zcut, comm.size - 1, 0).astype(np.int64)
+
+    sim = dem.Simulation(copy(p), mats, walls, (0, 0, -9.81), allow_overlap=True)
+    dsim = DistributedSimulation(p if comm.rank == 0 else None, mats, walls, (0, 0, -9.81),
+                                 comm=comm, owner=slabs, halo_skin=0.2 * R, allow_overlap=True)
+    owner0 = dsim.gather()
+    serial = consolidate_and_push(sim, p, pen, surcharged)
+    dist = consolidate_and_push(dsim, p, pen, surcharged)
+    assert dist[0]["steps"] == serial[0]["steps"] > 200
+    for k in ("ratio", "energy_removed"):
+        assert abs(dist[0][k] - serial[0][k]) <= 1e-10 * abs(serial[0][k]), k
+    assert abs(dsim.damping_removed - sim.damping_removed) <= 1e-10 * sim.damping_removed
+    assert np.abs(dist[1] - serial[1]).max() <= 1e-10 * np.abs(serial[1]).max()
+    assert np.abs(serial[1][-1, 2]) > 10 * np.abs(serial[1][0, 2])  # the tip met the grains
+    assert np.array_equal(dsim.values_of(pen, "x"), sim.p.x[pen])  # prescribed: exact
+    assert_same_as_serial(dsim, sim)
+    out = dsim.gather()
+    if comm.size > 1:
+        assert dsim.decompositions > 5
+        moved = comm.bcast(None if out is None else
+                           int((out["rank"][pen] != owner0["rank"][pen]).sum()))
+        assert moved > 0  # clump spheres changed rank in the push
+
+
+def test_distributed_step_refuses_what_it_cannot_do():
+    """A prescribed motion of a FREE particle, a step hook and unknown ids are named."""
+    from mpi4py import MPI
+
+    p, mats, walls, pen, _ = chamber()
+    d = DistributedSimulation(p, mats, walls, comm=MPI.COMM_SELF, allow_overlap=True)
+    with pytest.raises(ValueError, match="not GHOST"):
+        d.step(1, prescribed=dem.Prescribed(dem.Translated([0], p.x[:1], (0, 0, 1))))
+    with pytest.raises(ValueError, match="no hook"):
+        d.step(1, hook=lambda: False)
+    with pytest.raises(ValueError, match="gids must lie in"):
+        d.values_of([p.n])
+    with pytest.raises(ValueError, match="no hook"):
+        dem.relax(d, controllers=[dem.ServoWall(0, 1.0, 1.0, 1.0, 1.0)])
