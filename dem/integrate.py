@@ -590,6 +590,9 @@ class Simulation:
         books the ghosts' work over the new set of GHOST rows."""
         self._ghosts = self._ghost_index()
         self._at = self._positions()
+        if self.walls.free_only.any():
+            # a released grain meets the free_only walls its GHOST row was kept from
+            self.rebuild_neighbours()
 
     @property
     def forced(self) -> np.ndarray:
@@ -661,8 +664,15 @@ class Simulation:
         self._prune(self.nl)
 
     def _prune(self, nl):
-        """Called after every neighbour build, before the force pass: a subclass may drop
-        candidates it does not need (`dem.parallel` drops the halo copies' own contacts)."""
+        """Called after every neighbour build, before the force pass: drops the GHOST rows'
+        candidates of ``free_only`` walls; a subclass may drop more (`dem.parallel` drops the
+        halo copies' own contacts)."""
+        w = self.walls
+        if len(nl.wi) and w.free_only.any():
+            keep = ~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST))
+            if not keep.all():
+                nl.wi, nl.ww = nl.wi[keep], nl.ww[keep]
+                nl.whist, nl.wslip, nl.wetan = nl.whist[keep], nl.wslip[keep], nl.wetan[keep]
 
     def compute_forces(self, update_history: bool = True):
         """Contact forces at the current state into ``p.force``/``p.torque`` and

@@ -309,6 +309,7 @@ class _LocalSimulation(Simulation):
         if not keep.all():
             nl.wi, nl.ww = nl.wi[keep], nl.ww[keep]
             nl.whist, nl.wslip, nl.wetan = nl.whist[keep], nl.wslip[keep], nl.wetan[keep]
+        super()._prune(nl)
 
 
 class _LocalMotion:

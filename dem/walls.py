@@ -17,7 +17,9 @@ __all__ = ["PlaneWall", "WallSet", "box_walls"]
 class PlaneWall:
     """Plane through ``point`` (3,) [m] with ``normal`` (3,) pointing into the domain
     (normalised here), moving with ``velocity`` (3,) [m/s]; ``material`` indexes the
-    simulation's material list; ``rigid``: the wall does not deform.
+    simulation's material list; ``rigid``: the wall does not deform; ``free_only``: only
+    FREE particles touch it (GHOST ones, a prescribed penetrator, pass through: a loading
+    plate the cone pierces, as a PFC wall does not meet another wall).
 
     Contact of a particle of material a with the wall (`dem.contact.pair_table`):
 
@@ -41,6 +43,7 @@ class PlaneWall:
     velocity: tuple = (0.0, 0.0, 0.0)
     material: int = 0
     rigid: bool = False
+    free_only: bool = False
 
     def __post_init__(self):
         for name in ("point", "normal", "velocity"):
@@ -54,14 +57,15 @@ class PlaneWall:
         object.__setattr__(self, "normal", tuple(np.asarray(self.normal) / nn))
         if not (isinstance(self.material, int | np.integer) and self.material >= 0):
             raise ValueError(f"PlaneWall.material must be an int >= 0, got {self.material!r}")
-        if not isinstance(self.rigid, bool | np.bool_):
-            raise ValueError(f"PlaneWall.rigid must be True or False, got {self.rigid!r}")
+        for name in ("rigid", "free_only"):
+            if not isinstance(getattr(self, name), bool | np.bool_):
+                raise ValueError(f"PlaneWall.{name} must be True or False, got {getattr(self, name)!r}")
 
 
 class WallSet:
     """Arrays of the walls in a simulation: ``point, normal, velocity, force`` (nw, 3)
-    [m, -, m/s, N], ``material`` (nw,) int32 and ``rigid`` (nw,) bool (set-up, not state:
-    not in `state_dict`). ``point`` advances with ``velocity``; set ``velocity[w]`` from
+    [m, -, m/s, N], ``material`` (nw,) int32, ``rigid`` and ``free_only`` (nw,) bool
+    (set-up, not state: not in `state_dict`). ``point`` advances with ``velocity``; set ``velocity[w]`` from
     outside to drive wall w; ``force[w]`` is the resultant of the particles on wall w at the
     last force evaluation."""
 
@@ -73,6 +77,7 @@ class WallSet:
         self.velocity = np.array([w.velocity for w in walls], float).reshape(-1, 3)
         self.material = np.array([w.material for w in walls], np.int32)
         self.rigid = np.array([bool(w.rigid) for w in walls], bool)
+        self.free_only = np.array([bool(w.free_only) for w in walls], bool)
         self.force = np.zeros((len(walls), 3))
 
     def __len__(self):

@@ -6,6 +6,9 @@ Chambers are continuum meshes refined toward the DE window at the top of the axi
   physical groups ``soil`` (2D), ``top``, ``bottom``, ``left``, ``right``.
 - ``chamber_3d``: cylinder of radius R, depth H, axis z (surface z = 0), groups
   ``soil`` (3D), ``top``, ``bottom``, ``side``.
+- ``chamber_3d_box``: box ``[-W/2, W/2]^2 x [-H, 0]`` (the full-DEM chamber's shape: plane
+  walls), groups ``soil`` (3D), ``top``, ``bottom``, ``left``, ``right`` (normal x),
+  ``front``, ``back`` (normal y).
 
 Penetrators are rigid surfaces for the DEM (gmsh surface meshes returned as arrays):
 
@@ -25,7 +28,7 @@ import numpy as np
 
 from meshes.distribute import on_rank0
 
-__all__ = ["chamber_2d", "chamber_3d", "build_chamber", "cone_penetrometer", "flat_pile",
+__all__ = ["chamber_2d", "chamber_3d", "chamber_3d_box", "build_chamber", "cone_penetrometer", "flat_pile",
            "STANDARD_CONE_RADIUS"]
 
 STANDARD_CONE_RADIUS = float(np.sqrt(10e-4 / np.pi))  # 10 cm^2 projected area
@@ -146,10 +149,47 @@ def chamber_3d(model, radius: float, depth: float, window_radius: float, window_
     model.mesh.generate(3)
 
 
-def build_chamber(comm: MPI.Comm, dim: int, **params):
-    """Mesh a chamber on rank 0 and distribute it: returns ``dolfinx.io.gmsh.MeshData``."""
-    return on_rank0(comm, f"chamber_{dim}d",
-                    lambda m: (chamber_2d if dim == 2 else chamber_3d)(m, **params), dim)
+def chamber_3d_box(model, width: float, depth: float, window_width: float, window_depth: float,
+                   h_window: float, h_far: float) -> None:
+    """Square chamber (axis z, surface z = 0) refined inside and around the DE window
+    ``|x|, |y| < w/2, -d < z < 0``; the size grows linearly with the distance from it."""
+    _check_positive(width=width, depth=depth, window_width=window_width,
+                    window_depth=window_depth, h_window=h_window, h_far=h_far)
+    if window_width >= width or window_depth >= depth:
+        raise ValueError("the DE window must lie inside the chamber (window_width < width, "
+                         "window_depth < depth)")
+    occ = model.occ
+    box = occ.addBox(-width / 2, -width / 2, -depth, width, width, depth)
+    occ.synchronize()
+    groups = {"top": [], "bottom": [], "left": [], "right": [], "front": [], "back": []}
+    for dim, tag in model.getBoundary([(3, box)], oriented=False):
+        x, y, z = occ.getCenterOfMass(dim, tag)
+        key = ("top" if np.isclose(z, 0) else "bottom" if np.isclose(z, -depth)
+               else "left" if np.isclose(x, -width / 2) else "right" if np.isclose(x, width / 2)
+               else "front" if y < 0 else "back")
+        groups[key].append(tag)
+    model.addPhysicalGroup(3, [box], tag=1, name="soil")
+    for i, (name, tags) in enumerate(groups.items()):
+        model.addPhysicalGroup(2, tags, tag=10 + i, name=name)
+    half = window_width / 2
+    size = model.mesh.field.add("MathEval")
+    model.mesh.field.setString(size, "F", f"Min({h_far}, {h_window} + 0.5 * Max(0, Max(Abs(x), Abs(y)) - {half})"
+                                          f" + 0.5 * Max(0, -z - {window_depth}))")
+    model.mesh.field.setAsBackgroundMesh(size)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    model.mesh.generate(3)
+
+
+def build_chamber(comm: MPI.Comm, dim: int, shape: str = "cylinder", **params):
+    """Mesh a chamber on rank 0 and distribute it: returns ``dolfinx.io.gmsh.MeshData``.
+    ``shape`` (3D): ``"cylinder"`` (:func:`chamber_3d`) or ``"box"`` (:func:`chamber_3d_box`)."""
+    builders = {2: chamber_2d} if dim == 2 else {"cylinder": chamber_3d, "box": chamber_3d_box}
+    build = builders[2] if dim == 2 else builders.get(shape)
+    if build is None:
+        raise ValueError(f"shape must be 'cylinder' or 'box', got {shape!r}")
+    return on_rank0(comm, f"chamber_{dim}d", lambda m: build(m, **params), dim)
 
 
 def _surface_arrays(model, dim):

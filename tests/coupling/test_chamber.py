@@ -58,9 +58,63 @@ def test_coupled_chamber_carries_the_increment():
     assert bcs["rigid"] == bcs["stress"] + 2
 
 
-def test_chamber_loading_is_2d_and_named():
-    with pytest.raises(ValueError, match="vertical_stress > 0 needs dim = 2"):
-        PenetrationParameters(dim=3, vertical_stress=1e5)
+# the 3D chamber: Hertz spheres of 1.5 mm, a cone of 4 grain radii, 50 kPa under a top plate
+CHAMBER_3D = dict(dim=3, chamber_width=0.075, chamber_depth=0.045, radius=1.5e-3, cone_radius=0.006, velocity=1.0,
+                  depth=0.004, vertical_stress=5e4, consolidation_tol=1e-2, window_half_width=0.0135,
+                  window_depth=0.025, element_size_window=0.005, element_size_far=0.02, substeps=50)
+
+
+def test_3d_chamber_plate_holds_the_vertical_stress_and_the_cone_passes_it():
+    """3D: the top plate, servo-controlled, holds sigma_v over the chamber's square top while
+    consolidating and pushing; the base carries it with the grains' weight; the cone's
+    spheres pass through the plate (they meet only grains)."""
+    prm = PenetrationParameters(**(CHAMBER_3D | {"chamber_depth": 0.02}))
+    model = DemPenetration(prm, log=lambda m: None)
+    sim, n = model.sim, model.n_grains
+    (servo,) = model.servos
+    assert servo.area == pytest.approx(prm.chamber_width**2) and servo.target == prm.vertical_stress
+    assert servo.stress(sim) == pytest.approx(prm.vertical_stress, rel=1e-2)
+    weight = float(sim.p.mass[:n].sum() * prm.gravity)
+    assert -sim.walls.force[4, 2] == pytest.approx(prm.vertical_stress * prm.chamber_width**2 + weight, rel=0.03)
+    assert len(sim.external_force()[0]) == 0          # no constant forces on top spheres in 3D
+    history = model.run()
+    q = np.array([h["q_c"] for h in history])
+    assert np.isfinite(q).all() and q[-1] > 0.5 * prm.vertical_stress
+    # the plate held its stress through the push (a block's lag aside)
+    assert servo.stress(sim) == pytest.approx(prm.vertical_stress, rel=0.1)
+    # no cone sphere touches the plate: its force is the grains' alone
+    wall = sim.walls
+    assert not (wall.free_only[sim.nl.ww] & (sim.p.kind[sim.nl.wi] != 0)).any()
+
+
+def test_3d_coupled_chamber_carries_the_increment_on_rollers():
+    prm = PenetrationParameters(**CHAMBER_3D)
+    model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
+    (servo,) = model.servos
+    # the plate rests on the window's free grains after the band is held: it keeps their share
+    assert servo.stress(model.sim) == pytest.approx(prm.vertical_stress, rel=1e-6)
+    assert servo.area < (2 * (prm.window_half_width + prm.ghost_width * 2 * prm.radius)) ** 2
+    history = model.run(steps=3)
+    assert len(history) == 3 and np.isfinite([h["q_c"] for h in history]).all()
+    assert np.abs(model.problem.w.x.array).max() < prm.depth
+    # BC3 in a box: the sides on rollers (no normal displacement; they slide vertically)
+    u = model.problem.w.sub(0).collapse()
+    x, w = u.function_space.tabulate_dof_coordinates(), u.x.array.reshape(-1, 3)
+    half = prm.chamber_width / 2
+    for axis in (0, 1):
+        side = np.isclose(np.abs(x[:, axis]), half)
+        assert side.any() and np.all(w[side, axis] == 0.0)
+    sides = np.isclose(np.abs(x[:, :2]), half).any(axis=1) & (x[:, 2] > x[:, 2].min() + 1e-9)
+    assert np.abs(w[sides, 2]).max() > 0
+    # the window's stress as the continuum's start: vertical about sigma_v, lateral K0 of it
+    s = model._window_stress()
+    assert len(s) == 3 and -1.5 * prm.vertical_stress < s[2] < -0.6 * prm.vertical_stress
+    assert s[2] < s[0] < 0 and s[2] < s[1] < 0
+
+
+def test_chamber_loading_is_named():
+    with pytest.raises(ValueError, match="lateral = 'stress' \\(BC1\\) needs dim = 2"):
+        PenetrationParameters(dim=3, vertical_stress=1e5, lateral="stress")
     with pytest.raises(ValueError, match="lateral must be 'rigid'"):
         PenetrationParameters(lateral="membrane")
     with pytest.raises(ValueError, match="vertical_stress must be >= 0"):
@@ -127,11 +181,11 @@ def test_calibrated_continuum_takes_the_cell_tests_constants_and_angles():
     assert np.isfinite([h["q_c"] for h in history]).all()
 
 
-def test_calibrated_constants_are_2d_only():
+def test_continuum_choices_are_named():
     with pytest.raises(ValueError, match="continuum_constants must be 'lattice' or 'calibrated'"):
         PenetrationParameters(continuum_constants="measured")
-    with pytest.raises(ValueError, match="'calibrated' is 2D only"):
-        PenetrationParameters(dim=3, continuum_constants="calibrated")
+    with pytest.raises(ValueError, match="'micropolar_drucker_prager' needs vertical_stress > 0"):
+        PenetrationParameters(dim=3, continuum="micropolar_drucker_prager")
 
 
 def test_hardening_is_validated():

@@ -87,3 +87,32 @@ def test_rigid_flag_is_checked_and_carried():
                            dem.PlaneWall((0, 0, 1), (0, 0, -1), material=1)])
     assert w.table_columns(3).tolist() == [4, 1]
     assert "rigid" not in w.state_dict()  # set-up, like the number of walls
+
+
+def test_free_only_wall_lets_ghosts_through_until_they_are_released():
+    """A ``free_only`` plate (a loading plate the cone pierces): a GHOST sphere behind it
+    feels no force and puts none on it; a FREE sphere pressing on it does; a GHOST released
+    with ``kinds_changed`` touches it from the next pass on."""
+    with pytest.raises(ValueError, match="PlaneWall.free_only"):
+        dem.PlaneWall((0, 0, 0), (0, 0, -1), free_only=1)
+    mat = dem.ContactMaterial(E=1e7, nu=0.25, density=2650.0, friction=0.5, restitution=0.5)
+    r = 1e-3
+    # the plate at z = 0 facing down; a ghost 3 r above it (behind), a free grain pressing it
+    x = np.array([[0.0, 0.0, 3 * r], [0.01, 0.0, -0.9 * r]])
+    p = dem.Particles.spheres(x, np.full(2, r), 2650.0, kind=np.array([dem.GHOST, 0], np.int8))
+    plate = dem.PlaneWall((0, 0, 0), (0, 0, -1), free_only=True)
+    sim = dem.Simulation(p, mat, walls=[plate], allow_overlap=True)
+    sim.compute_forces(update_history=False)
+    assert np.all(sim.p.force[0] == 0.0)
+    assert sim.p.force[1, 2] < 0 and sim.walls.force[0, 2] == pytest.approx(-sim.p.force[1, 2])
+    # the same with an ordinary wall: the ghost behind it is a deep overlap
+    sim2 = dem.Simulation(dem.Particles.spheres(x, np.full(2, r), 2650.0, kind=np.array([dem.GHOST, 0], np.int8)),
+                          mat, walls=[dem.PlaneWall((0, 0, 0), (0, 0, -1))], allow_overlap=True)
+    sim2.compute_forces(update_history=False)
+    assert sim2.p.force[0, 2] < 0
+    # released: the former ghost meets the plate
+    sim.p.x[0, 2] = -0.9 * r
+    sim.p.kind[0] = 0
+    sim.kinds_changed()
+    sim.compute_forces(update_history=False)
+    assert sim.p.force[0, 2] == pytest.approx(sim.p.force[1, 2], rel=1e-12)

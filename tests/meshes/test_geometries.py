@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import ufl
 from dolfinx import fem
+from dolfinx import mesh as dmesh
 
 from meshes import penetration, plate_hole
 
@@ -38,6 +39,30 @@ def test_chamber_3d_groups():
     assert {"soil", "top", "bottom", "side"} <= names
     # faceted cylinder (h_far = R/2): volume within 5 % of pi R^2 H
     assert abs(volume(data.mesh) - np.pi * 0.3**2 * 0.5) < 0.05 * np.pi * 0.3**2 * 0.5
+
+
+def test_chamber_3d_box_groups_and_refinement():
+    data = penetration.build_chamber(MPI.COMM_WORLD, 3, shape="box", width=0.4, depth=0.3, window_width=0.1,
+                                     window_depth=0.1, h_window=0.025, h_far=0.12)
+    names = {n for n, (d, _) in data.physical_groups.items()}
+    assert {"soil", "top", "bottom", "left", "right", "front", "back"} <= names
+    assert np.isclose(volume(data.mesh), 0.4 * 0.4 * 0.3)
+    domain = data.mesh
+    h = domain.h(3, np.arange(domain.topology.index_map(3).size_local, dtype=np.int32))
+    mid = domain.geometry.x[domain.geometry.dofmaps[0][: len(h)]].mean(axis=1)
+    inside = (np.abs(mid[:, :2]).max(axis=1) < 0.04) & (mid[:, 2] > -0.08)
+    h_in = domain.comm.allreduce(h[inside].max(initial=0.0), MPI.MAX)
+    h_out = domain.comm.allreduce(h[~inside].max(initial=0.0), MPI.MAX)
+    assert h_in < 0.06 < h_out
+    # each side's facets lie in its plane
+    x = domain.geometry.x
+    for name, (axis, value) in {"left": (0, -0.2), "back": (1, 0.2), "bottom": (2, -0.3)}.items():
+        facets = data.facet_tags.find(data.physical_groups[name][1])
+        nodes = dmesh.entities_to_geometry(domain, 2, facets)
+        assert len(facets) == 0 or np.allclose(x[nodes.ravel(), axis], value)
+    with pytest.raises(ValueError, match="shape"):
+        penetration.build_chamber(MPI.COMM_WORLD, 3, shape="sphere", width=0.4, depth=0.3, window_width=0.1,
+                                  window_depth=0.1, h_window=0.025, h_far=0.12)
 
 
 def test_bad_window_named():

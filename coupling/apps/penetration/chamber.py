@@ -1,5 +1,5 @@
 """Calibration-chamber loading of the grains: a vertical stress on top, and the lateral
-boundary conditions of physical chambers (2D).
+boundary conditions of physical chambers (2D, and 3D under BC3).
 
 A calibration chamber holds its sand under a vertical stress applied on top (a rubber
 membrane or a plate with a hole for the rod) and, on its sides, either a constant stress
@@ -7,10 +7,20 @@ membrane or a plate with a hole for the rod) and, on its sides, either a constan
 the sample is K0-consolidated first, then the boundary condition of the test is switched
 on. Here:
 
-- **surcharge**: the top row of grains (the lattice's highest row) carries the vertical
+- **surcharge** (2D): the top row of grains (the lattice's highest row) carries the vertical
   stress as constant forces ``sigma_v x (width / top grains)`` (`dem.Simulation.
   set_external_force`), the grains above the cone too: a membrane the cone pierces (a
   hole would leave its grains unloaded, squeezed up by the loaded ones around it);
+- **top plate** (3D): a smooth rigid plate on the top grains, servo-controlled at the vertical
+  stress (`dem.ServoWall`) while consolidating and during the push, as the top wall of DEM
+  chambers (Arroyo et al. 2011); only FREE grains touch it (``free_only``): the cone passes
+  through. Its equilibrium is measured by PFC's ratio of the mean unbalanced force to the
+  mean contact force (`dem.control.mean_force_ratio`): loaded through walls, every grain's
+  contact resultant is unbalanced force. The Hertz spheres need the default step (0.2 of
+  the Rayleigh step, ``dt_factor = 1``) at these stresses: at 50 kPa with E = 29 MPa the
+  contacts are 6 % of a radius deep and stiffer than the Rayleigh estimate assumes, and at
+  0.3 of it the packing heated up instead of settling (ratio 0.5 after 200k steps; 2750
+  steps to 1e-2 at 0.2).
 - **consolidation**: dynamic relaxation (`dem.relax`) to a stated unbalanced-force ratio,
   with the sides rigid and smooth (frictionless walls: rough ones carry the load by
   friction, as in a silo): K0. A coupled window consolidates with its ghost band as one
@@ -36,27 +46,39 @@ import numpy as np
 
 from coupling.apps.penetration.parameters import VERTICAL
 
-__all__ = ["surcharge", "consolidate", "consolidate_window", "withdraw_walls", "side_servos", "apply_loads",
-           "smooth_walls", "box_around"]
+__all__ = ["surcharge", "packing_modulus", "consolidate", "top_plate", "plate_servo", "consolidate_window",
+           "withdraw_walls", "side_servos", "apply_loads", "smooth_walls", "box_around"]
 
 
 def surcharge(x: np.ndarray, candidates: np.ndarray, prm, width: float) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and forces (k, 3) [N per m thickness] of the vertical stress on the top row of
-    the lattice ``x`` (n, 3) among the FREE rows ``candidates``: the grains within half a
-    radius of the highest centre; ``width`` [m] is the loaded
-    width the top row spans (the chamber's, or the window's with its band)."""
+    """Rows and forces (k, 3) [N; per m thickness in 2D] of the vertical stress on the top
+    row of the lattice ``x`` (n, 3) among the FREE rows ``candidates``: the grains within half
+    a radius of the highest centre; ``width`` [m] is the loaded width the top row spans (the
+    chamber's, or the window's with its band; the side of a square in 3D)."""
     ax = VERTICAL[prm.dim]
     top = float(x[:, ax].max())
     rows = candidates[x[candidates, ax] > top - 0.5 * prm.radius]
     n_row = int(np.sum(np.abs(x[:, ax] - top) < 0.5 * prm.radius))   # with the band's ghosts
     f = np.zeros((len(rows), 3))
-    f[:, ax] = -prm.vertical_stress * width / max(n_row, 1)
+    f[:, ax] = -prm.vertical_stress * width ** (prm.dim - 1) / max(n_row, 1)
     return rows, f
 
 
-def consolidate(sim, prm, log=print) -> dict:
-    """Dynamic relaxation under the surcharge to ``prm.consolidation_tol`` (the walls or the
-    ghosts hold the sides and the bottom). Returns relax's record with the wall time."""
+def packing_modulus(prm) -> float:
+    """The order of the packing's modulus [Pa] under the vertical stress: ``kn`` for the 2D
+    linear disks (N/m per m thickness), ``(E*^2 sigma_v)^(1/3)`` for Hertz spheres (their
+    contact stiffness grows as the cube root of the force; Walton 1987's scaling, E* = E / (2
+    (1 - nu^2))): at 50 kPa 1/30 of E, whose wave speed overdamps the consolidation 3x."""
+    if prm.dim == 2:
+        return prm.kn
+    e_star = prm.youngs_modulus / (2 * (1 - prm.nu**2))
+    return float((e_star**2 * max(prm.vertical_stress, prm.density * prm.gravity * prm.radius)) ** (1 / 3))
+
+
+def consolidate(sim, prm, log=print, controllers=()) -> dict:
+    """Dynamic relaxation under the surcharge (or the servo-controlled top plate among
+    ``controllers``) to ``prm.consolidation_tol`` (the walls or the ghosts hold the sides and
+    the bottom). Returns relax's record with the wall time."""
     from dem import relax
 
     t0 = time.perf_counter()
@@ -65,14 +87,43 @@ def consolidate(sim, prm, log=print) -> dict:
     # consolidation takes ten times the steps
     ax = VERTICAL[prm.dim]
     height = float(np.ptp(sim.p.x[sim.p.kind == 0, ax])) + 2 * prm.radius
-    wave = np.sqrt(prm.kn / prm.density) if prm.dim == 2 else np.sqrt(prm.youngs_modulus / prm.density)
+    wave = np.sqrt(packing_modulus(prm) / prm.density)
     damping = 2 * (np.pi * wave / (2 * height))
+    # a packing loaded through a plate: every contact resultant is unbalanced force until the
+    # end, PFC's ratio of the means measures its equilibrium
+    from dem.control import mean_force_ratio, unbalanced_force_ratio
+
     info = relax(sim, tol=prm.consolidation_tol, max_steps=prm.consolidation_max_steps,
-                 damping=damping)
+                 damping=damping, controllers=controllers,
+                 ratio=mean_force_ratio if controllers else unbalanced_force_ratio)
     info["wall_time"] = time.perf_counter() - t0
     log(f"consolidated {int((sim.p.kind == 0).sum())} grains under {prm.vertical_stress / 1e3:.4g} kPa in "
         f"{info['steps']} steps ({info['wall_time']:.1f} s), unbalanced force ratio {info['ratio']:.2g}")
     return info
+
+
+def top_plate(x: np.ndarray, radius: np.ndarray, dim: int):
+    """The loading plate (3D): a smooth wall (material 1) on the highest grain's top, facing
+    down, touched by FREE grains only (the penetrator passes through it)."""
+    from dem import PlaneWall
+
+    ax = VERTICAL[dim]
+    e = np.eye(3)[ax]
+    return PlaneWall(tuple(float((x[:, ax] + radius).max()) * e), tuple(-e), material=1, free_only=True)
+
+
+def plate_servo(prm, wall: int, area: float):
+    """`dem.ServoWall` holding the top plate ``wall`` at ``prm.vertical_stress`` over ``area``
+    [m^2]. Its speed is a fifth of the particle velocity of a stress wave of the error's
+    amplitude in the packing, ``0.2 (sigma_v - sigma) / (rho c)`` (a plate moving at the
+    full particle velocity would make the error's stress; ``rho`` the bulk density at a solid
+    fraction of 0.6, ``c`` the wave speed of :func:`packing_modulus`): a gain set by the
+    packing's impedance, stable whether the servo acts every step or once a block."""
+    from dem import ServoWall
+
+    rho = 0.6 * prm.density
+    impedance = rho * np.sqrt(packing_modulus(prm) / rho)
+    return ServoWall(wall, prm.vertical_stress, area, 0.2 / impedance, max(prm.velocity, 0.1))
 
 
 def withdraw_walls(sim, walls: list[int]) -> None:
@@ -134,25 +185,37 @@ def box_around(x: np.ndarray, radius: np.ndarray, dim: int) -> list:
     return walls
 
 
-def consolidate_window(sim, prm, n: int, band: np.ndarray, width: float, log=print) -> None:
+def consolidate_window(sim, prm, n: int, band: np.ndarray, width: float, log=print,
+                       plate: int | None = None):
     """Consolidate a coupled window with its ghost band (rows ``band``, GHOST) free inside the
     simulation's smooth walls, under the surcharge on the top row of the ``n`` grains
-    spanning ``width`` [m]; then hold the band again (at rest: the ghosts), withdraw the
-    walls and keep the surcharge on the window's free top grains only."""
+    spanning ``width`` [m] (or the top plate, wall ``plate``, servo-controlled); then hold
+    the band again (at rest: the ghosts), withdraw the walls (the plate stays) and keep the
+    surcharge on the window's free top grains only. Returns the plate's servo for the push
+    (None without a plate): the force the free grains put on the plate now, held."""
     from dem import FREE, GHOST
 
     p = sim.p
     p.kind[band] = FREE
     sim.kinds_changed()
     grains = np.arange(n)
-    apply_loads(sim, surcharge(p.x[:n], grains, prm, width))
-    consolidate(sim, prm, log)
-    sim.set_external_force(None, None)
+    if plate is None:
+        apply_loads(sim, surcharge(p.x[:n], grains, prm, width))
+        consolidate(sim, prm, log)
+        sim.set_external_force(None, None)
+    else:
+        consolidate(sim, prm, log, controllers=[plate_servo(prm, plate, width ** (prm.dim - 1))])
     p.kind[band] = GHOST
     p.v[band] = 0.0
     p.omega[band] = 0.0
     sim.kinds_changed()
     # what the walls carried the ghosts, held where the walls left them, carry now
-    withdraw_walls(sim, list(range(len(sim.walls))))
-    free = grains[p.kind[:n] == FREE]
-    apply_loads(sim, surcharge(p.x[:n], free, prm, width))
+    withdraw_walls(sim, [k for k in range(len(sim.walls)) if k != plate])
+    if plate is None:
+        free = grains[p.kind[:n] == FREE]
+        apply_loads(sim, surcharge(p.x[:n], free, prm, width))
+        return None
+    # the plate now rests on the free grains alone: it keeps their share of the load
+    sim.compute_forces(update_history=False)
+    carried = float(-(sim.walls.force[plate] @ sim.walls.normal[plate]))
+    return plate_servo(prm, plate, carried / prm.vertical_stress)

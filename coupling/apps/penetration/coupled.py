@@ -66,9 +66,11 @@ from coupling.apps.penetration.chamber import (
     box_around,
     consolidate,
     consolidate_window,
+    plate_servo,
     side_servos,
     smooth_walls,
     surcharge,
+    top_plate,
 )
 from coupling.apps.penetration.parameters import VERTICAL, PenetrationParameters
 from coupling.apps.penetration.penetrators import cone_clump, cone_parts, cone_record, penetrator_clump, tip_height
@@ -168,19 +170,22 @@ def grain_lattice(prm, lo, hi, rng):
     return x, prm.radius * (1 - prm.jitter * rng.random(len(x)))
 
 
-def _settle(sim, prm, n: int, free_rows, width: float, log) -> list:
+def _settle(sim, prm, n: int, free_rows, width: float, log, plate: int | None = None) -> list:
     """Settle the grains before the push: under gravity for ``prm.settle_time`` (a free
     surface), or consolidated under the chamber's vertical stress on the top row of
-    ``free_rows`` (among the first ``n`` rows, the grains) spanning ``width`` [m]
-    (:mod:`coupling.apps.penetration.chamber`).
-    Returns the external loads set (a list of (rows, forces))."""
+    ``free_rows`` (among the first ``n`` rows, the grains) spanning ``width`` [m], or under
+    the top plate (wall ``plate``, 3D) (:mod:`coupling.apps.penetration.chamber`).
+    Returns the servos to keep acting in the push (the plate's)."""
     if prm.vertical_stress == 0:
         sim.step(int(np.ceil(prm.settle_time / sim.dt)))
         return []
-    loads = [surcharge(sim.p.x[:n], free_rows, prm, width)]
-    apply_loads(sim, *loads)
+    if plate is not None:
+        servo = plate_servo(prm, plate, width ** (prm.dim - 1))
+        consolidate(sim, prm, log, controllers=[servo])
+        return [servo]
+    apply_loads(sim, surcharge(sim.p.x[:n], free_rows, prm, width))
     consolidate(sim, prm, log)
-    return loads
+    return []
 
 
 def _gravity(prm):
@@ -230,6 +235,10 @@ class DemPenetration:
         walls = [PlaneWall(tuple(-W / 2 * e), tuple(e), material=wm) for e in np.eye(3)[:dim - 1]]
         walls += [PlaneWall(tuple(W / 2 * e), tuple(-e), material=wm) for e in np.eye(3)[:dim - 1]]
         walls.append(PlaneWall(tuple(-H * np.eye(3)[ax]), tuple(np.eye(3)[ax]), material=wm))
+        plate = None
+        if dim == 3 and prm.vertical_stress > 0:
+            plate = len(walls)
+            walls.append(top_plate(x, radius, dim))
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
         self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
                               dt=dem_time_step(prm, radius), allow_overlap=True)
@@ -237,12 +246,12 @@ class DemPenetration:
         self.sim.compute_forces(update_history=False)
         self.clump_internal = self.sim.p.force[self.pen_index].copy()
         t0 = time.perf_counter()
-        _settle(self.sim, prm, n, np.arange(n), W, log)
+        self.servos = _settle(self.sim, prm, n, np.arange(n), W, log, plate)
         # BC1: the side walls servo-controlled at the lateral stress they carry now
         # (the 2D disks' modulus is of the order of kn, N/m per m thickness)
-        self.servos = side_servos(self.sim, list(range(2 * (dim - 1))), float(np.ptp(self.sim.p.x[:n, ax])),
-                                  W, prm.kn, prm.substeps * self.sim.dt, prm.velocity) \
-            if prm.lateral == "stress" else []
+        if prm.lateral == "stress":
+            self.servos += side_servos(self.sim, list(range(2 * (dim - 1))), float(np.ptp(self.sim.p.x[:n, ax])),
+                                       W, prm.kn, prm.substeps * self.sim.dt, prm.velocity)
         lower_penetrator(self.sim.p, n, self.pen0, r_pen, prm)
         log(f"full DEM: settled {n} grains in {time.perf_counter() - t0:.1f} s")
         self.history: list[dict] = []
@@ -322,9 +331,12 @@ class CoupledPenetration:
         # the penetrator's spheres overlap each other by construction (a smooth rigid outline);
         # under a vertical stress the window and its band consolidate together inside smooth
         # walls round the band (chamber.consolidate_window)
-        walls, materials = (), self.material
+        walls, materials, plate = (), self.material, None
         if prm.vertical_stress > 0:
             walls, materials = box_around(self.x_grains, radius, dim), smooth_walls(self.material)
+            if dim == 3:
+                plate = len(walls)
+                walls.append(top_plate(self.x_grains, radius, dim))
         self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
                               dt=dem_time_step(prm, radius), allow_overlap=True)
         self.sim.dt *= prm.dt_factor
@@ -335,11 +347,14 @@ class CoupledPenetration:
         # wall time split of each FE step of run() (not part of the history or checkpoints)
         self.step_timings: list[dict] = []
         self.depth = 0.0
+        self.servos = []   # the top plate's (3D chamber), once per FE step
         saved = None
         if checkpoint is None:
             t0 = time.perf_counter()
             if prm.vertical_stress > 0:
-                consolidate_window(self.sim, prm, n, np.flatnonzero(self.kinds == 1), 2 * (a + band), log)
+                servo = consolidate_window(self.sim, prm, n, np.flatnonzero(self.kinds == 1), 2 * (a + band), log,
+                                           plate=plate)
+                self.servos = [] if servo is None else [servo]
             else:
                 _settle(self.sim, prm, n, np.flatnonzero(self.kinds == 0), 2 * (a + band), log)
             e = self.sim.energy()
@@ -357,13 +372,20 @@ class CoupledPenetration:
             # the continuum reaches the highest settled grain centre (every grain inside the mesh)
             self.surface = float(self.x_ref[:, ax].max() + 1e-3 * prm.radius)
         else:
-            if prm.vertical_stress > 0:
+            if prm.vertical_stress > 0 and plate is None:
                 apply_loads(self.sim, surcharge(self.sim.p.x[:n], np.flatnonzero(self.kinds == 0), prm,
                                                 2 * (a + band)))
             saved = self._read_checkpoint(Path(checkpoint))
+            if plate is not None:
+                self.servos = [plate_servo(prm, plate, saved["state"]["plate_area"])]
         # ---- continuum: chamber, stiffness from the settled contacts
         if dim == 2:
             data = build_chamber(comm, 2, width=prm.chamber_width, depth=prm.chamber_depth,
+                                 window_width=2 * (a + band), window_depth=self._refined_depth() + band,
+                                 h_window=prm.element_size_window, h_far=prm.element_size_far)
+        elif prm.vertical_stress > 0:
+            # the chamber under a vertical stress: the full DEM's box of plane walls
+            data = build_chamber(comm, 3, shape="box", width=prm.chamber_width, depth=prm.chamber_depth,
                                  window_width=2 * (a + band), window_depth=self._refined_depth() + band,
                                  h_window=prm.element_size_window, h_far=prm.element_size_far)
         else:
@@ -379,19 +401,20 @@ class CoupledPenetration:
             # Newton on the closed-form return can cycle at the residual's round-off floor of
             # the elastic-plastic switches: stop at a millionth of the nodal forces the
             # initial stress puts on a window element (the forces the grains exchange)
-            scale = max(abs(v) for v in self.initial_stress) * prm.element_size_window
+            scale = max(abs(v) for v in self.initial_stress) * prm.element_size_window ** (dim - 1)
             options = {"snes_atol": 1e-6 * scale}
         self.problem = ContinuumProblem(data.mesh, model, facet_tags=data.facet_tags, tag_names=names,
                                         degree=(1, 1), prefix="cpt_", solver="redundant",
                                         petsc_options=options)
         self.problem.fix("bottom", "u")
         self.problem.fix("bottom", "phi")
-        if dim == 2:
+        if dim == 2 or prm.vertical_stress > 0:
             # the increment from the consolidated state: a constant vertical stress on top
             # (traction-free), the sides on rollers (BC3) or traction-free (BC1)
             if prm.lateral == "rigid":
-                self.problem.fix("left", "u_x")
-                self.problem.fix("right", "u_x")
+                for side, component in (("left", "u_x"), ("right", "u_x"), ("front", "u_y"), ("back", "u_y")):
+                    if side in names:
+                        self.problem.fix(side, component)
         else:
             self._geostatic_loads()
             self.problem.solve()   # the geostatic state w_geo, before any dof is prescribed
@@ -402,7 +425,7 @@ class CoupledPenetration:
         self.free_local = np.flatnonzero(self.kinds == 0)
         self.ghost_local = np.flatnonzero(self.kinds == 1)
         self._g_ref, self._q_ref = None, None
-        if dim == 3:
+        if dim == 3 and prm.vertical_stress == 0:
             self._hold_geostatic_state()
         self.dt_fe = prm.substeps * self.sim.dt
         self.stepper = GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=0.8)
@@ -424,44 +447,47 @@ class CoupledPenetration:
         from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
 
         elastic = replace(self.material_fe, alpha=0.0, beta=0.0)
-        sxx, syy = self._initial_stress()
+        s0 = self._initial_stress()
         phi, psi = prm.continuum_friction_deg, prm.continuum_dilatancy_deg
         cal = self.contact_stats.get("calibration")
         if cal is not None:
             phi = cal["friction_peak_deg"]
             psi = min(max(cal["dilatancy_deg"], 0.0), phi)
+        # 2D: the disks' out-of-plane stress is unknown, taken as the lateral one
         mat = DruckerPragerMaterial(elastic, prm.continuum_cohesion, phi, psi,
-                                    hardening=prm.continuum_hardening, match="plane_strain",
-                                    initial_stress=(sxx, syy, sxx))
+                                    hardening=prm.continuum_hardening,
+                                    match="plane_strain" if prm.dim == 2 else "triaxial_compression",
+                                    initial_stress=(s0[0], s0[1], s0[0]) if prm.dim == 2 else s0)
         return MicropolarDruckerPrager(mat)
 
-    def _initial_stress(self) -> tuple[float, float]:
+    def _initial_stress(self) -> tuple[float, ...]:
         """The consolidated window's mean stress, measured once (or read from a checkpoint)."""
         if getattr(self, "initial_stress", None) is None:
             self.initial_stress = self._window_stress()
         return self.initial_stress
 
-    def _window_stress(self) -> tuple[float, float]:
-        """(sigma_xx, sigma_yy) [Pa, tension positive] of the free grains' mean (Love-Weber)
-        stress, over the contacts between free grains at least two diameters below the
-        surface and inside the window (the out-of-plane stress of disks is unknown: the
-        Drucker-Prager start takes sigma_zz = sigma_xx)."""
+    def _window_stress(self) -> tuple[float, ...]:
+        """The diagonal (sigma_xx, sigma_yy[, sigma_zz]) [Pa, tension positive] of the free
+        grains' mean (Love-Weber) stress, over the contacts between free grains at least two
+        diameters below the surface and inside the window (in 2D the out-of-plane stress of
+        disks is unknown: the Drucker-Prager start takes sigma_zz = sigma_xx)."""
         prm, sim, n = self.prm, self.sim, self.n_grains
+        dim, ax = prm.dim, VERTICAL[prm.dim]
         pairs, f, b = sim.contact_forces(return_branch=True)
         i, j = pairs[:, 0], pairs[:, 1]
         x, d = sim.p.x, 2 * prm.radius
-        top = float(x[:n, 1].max())
+        top = float(x[:n, ax].max())
         inner = np.zeros(sim.p.n, bool)
-        inner[:n] = ((self.kinds == 0) & (np.abs(x[:n, 0]) < prm.window_half_width - d)
-                     & (x[:n, 1] < top - 2 * d) & (x[:n, 1] > top - prm.window_depth + d))
+        inner[:n] = ((self.kinds == 0) & (np.abs(x[:n, :dim - 1]).max(axis=1) < prm.window_half_width - d)
+                     & (x[:n, ax] < top - 2 * d) & (x[:n, ax] > top - prm.window_depth + d))
         if (inner[i] & inner[j]).sum() < 20:
             raise ValueError("the window holds fewer than 20 contacts between free grains away from "
                              "its edges: too small to take the continuum's initial stress from")
         # a contact with one end inside counts half (Love-Weber over the inner region)
         weight = 0.5 * (inner[i].astype(float) + inner[j])
         sigma = np.einsum("k,ka,kb->ab", weight, f, b)
-        area = 2 * (prm.window_half_width - d) * (prm.window_depth - 3 * d)
-        return float(sigma[0, 0] / area), float(sigma[1, 1] / area)
+        volume = (2 * (prm.window_half_width - d)) ** (dim - 1) * (prm.window_depth - 3 * d)
+        return tuple(float(sigma[k, k] / volume) for k in range(dim))
 
     def _continuum_material(self):
         """Micropolar constants and density of the settled packing (module docstring, 3.)."""
@@ -493,7 +519,7 @@ class CoupledPenetration:
         from coupling.calibration import CellTest, calibrate
 
         prm = self.prm
-        p = -0.5 * sum(self._initial_stress())
+        p = -float(np.mean(self._initial_stress()))
         if not p > 0:
             raise ValueError(f"continuum.constants = 'calibrated': the window's mean stress {p:.3g} Pa "
                              "is not compressive, nothing to calibrate at")
@@ -502,7 +528,7 @@ class CoupledPenetration:
         # one rank calibrates (the grains are the same on every rank), every rank takes its result
         cal = None
         if self.comm.rank == 0:
-            cal = calibrate(CellTest(self.material, prm.radius, dim=2, pressure=p, packing="lattice",
+            cal = calibrate(CellTest(self.material, prm.radius, dim=prm.dim, pressure=p, packing="lattice",
                                      spread=prm.jitter, seed=prm.seed,
                                      shear_strain=0.3 if plastic else 0.0))
         cal = self.comm.bcast(cal, root=0)
@@ -550,10 +576,12 @@ class CoupledPenetration:
         phi = float(np.sum(4 / 3 * np.pi * r[inner] ** 3) / volume)
         A = 3 * phi * z / (2 * np.pi * float(np.mean(r)))
         kr = 0.1 * kt * d**2
-        mat = MicropolarMaterial(lam=A * (kn - kt) / 15, mu=A * (kn - kt) / 15, kappa=A * kt / 3,
-                                 gamma=A * kr / 3, rho=prm.density * phi, j=0.4 * prm.radius**2)
-        return mat, {"contacts": int(len(i)), "coordination": z, "density": prm.density * phi,
-                     "solid_fraction": phi, "kn": kn, "kt": kt}
+        c = dict(lam=A * (kn - kt) / 15, mu=A * (kn - kt) / 15, kappa=A * kt / 3, gamma=A * kr / 3)
+        stats = {"contacts": int(len(i)), "coordination": z, "density": prm.density * phi,
+                 "solid_fraction": phi, "kn": kn, "kt": kt}
+        if prm.continuum_constants == "calibrated":
+            c, stats["calibration"] = self._calibrated_constants()
+        return MicropolarMaterial(**c, rho=prm.density * phi, j=0.4 * prm.radius**2), stats
 
     def _geostatic_loads(self):
         """3D: gravity on the continuum and, on its side, the traction of the geostatic stress
@@ -641,6 +669,8 @@ class CoupledPenetration:
                 sim.load_state(saved)
             ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0],
                                  self.dt_fe)
+            for servo in self.servos:   # the top plate's speed, held over the sub-cycle
+                servo(sim)
             depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), depth0, prm.velocity,
                               ax, ghosts)
             t2 = clock()
@@ -687,6 +717,8 @@ class CoupledPenetration:
         t_dem = clock()
         ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0],
                              g_next[0], self.dt_fe)
+        for servo in self.servos:   # the top plate's speed, held over the sub-cycle
+            servo(sim)
         self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
                                prm.velocity, ax, ghosts)
         t1 = clock()
@@ -766,6 +798,7 @@ class CoupledPenetration:
                      "ranks": comm.size, "surface": self.surface,
                      "material": asdict(self.material_fe), "packing": self.contact_stats,
                      "initial_stress": getattr(self, "initial_stress", None),
+                     "plate_area": self.servos[0].area if self.servos else None,
                      "history": self.history}
             (tmp / "state.json").write_text(json.dumps(state, indent=1))
             return [name, "grains.npz", "state.json"]

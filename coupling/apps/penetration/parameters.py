@@ -22,7 +22,8 @@ VERTICAL = {2: 1, 3: 2}   # index of the vertical (penetration) axis
 class PenetrationParameters:
     """All lengths in m, times in s. Defaults: a 2 cm cone into ~1000 disks of 1.5 mm (2D).
 
-    In 3D (``dim = 3``) ``chamber_width`` is the chamber's diameter, the window is the square
+    In 3D (``dim = 3``) ``chamber_width`` is the chamber's diameter (under a
+    ``vertical_stress``: the side of its square, the full DEM's box of plane walls), the window is the square
     prism ``|x|, |y| <= window_half_width`` of depth ``window_depth``, the grains are
     Hertz-Mindlin spheres of Young's modulus ``youngs_modulus`` (``kn`` and ``kt_over_kn``
     are 2D only), and ``shape`` is ``"cone"`` (apex ``apex_deg``) or ``"pile"`` (flat end),
@@ -69,21 +70,23 @@ class PenetrationParameters:
     # constants times continuum_stiffness (1: consistent with the grains)
     dt_factor: float = 1.0
     continuum_stiffness: float = 1.0
-    # calibration-chamber loading (2D, coupling.apps.penetration.chamber): a vertical stress
+    # calibration-chamber loading (coupling.apps.penetration.chamber): a vertical stress
     # [Pa] on the top grains (0: a free surface under gravity), consolidated by dynamic
     # relaxation to consolidation_tol (unbalanced-force ratio); lateral = "rigid" keeps the
     # sides from moving (BC3, zero lateral strain), "stress" holds the consolidated lateral
-    # stress constant (BC1, servo-controlled side walls)
+    # stress constant (BC1, servo-controlled side walls; 2D)
     vertical_stress: float = 0.0
     lateral: str = "rigid"
     consolidation_tol: float = 1e-3
     consolidation_max_steps: int = 200_000
     # the continuum model (granfe.models): "micropolar" (elastic) or
-    # "micropolar_drucker_prager" (2D chambers under a vertical stress: its initial stress is
-    # the consolidated window's mean stress), with the cone matched in plane strain
+    # "micropolar_drucker_prager" (chambers under a vertical stress: its initial stress is
+    # the consolidated window's mean stress), with the cone matched to Mohr-Coulomb in plane
+    # strain (2D) or on the compression meridian (3D)
     continuum: str = "micropolar"
-    # where the continuum's constants come from (2D): "lattice", the bonded hexagonal
-    # lattice's constants scaled by the settled window's coordination; "calibrated", element
+    # where the continuum's constants come from: "lattice", the bonded hexagonal lattice's
+    # constants scaled by the settled window's coordination (2D) or the affine estimate of its
+    # Hertz-Mindlin contacts (3D); "calibrated", element
     # tests on a periodic cell of the scene's grains at the window's consolidated mean stress
     # (coupling.calibration; with the Drucker-Prager model its peak friction and dilatancy
     # angles replace continuum_friction_deg / continuum_dilatancy_deg)
@@ -156,16 +159,13 @@ class PenetrationParameters:
         if self.continuum not in ("micropolar", "micropolar_drucker_prager"):
             raise ValueError(f"continuum must be 'micropolar' or 'micropolar_drucker_prager', "
                              f"got {self.continuum!r}")
-        if self.continuum == "micropolar_drucker_prager" and not (self.dim == 2 and self.vertical_stress > 0):
-            raise ValueError("continuum = 'micropolar_drucker_prager' needs dim = 2 and vertical_stress "
-                             "> 0 (its yield function needs the total stress: a uniform initial stress, "
-                             "the consolidated chamber's; a free surface under gravity has none yet)")
+        if self.continuum == "micropolar_drucker_prager" and not self.vertical_stress > 0:
+            raise ValueError("continuum = 'micropolar_drucker_prager' needs vertical_stress > 0 (its "
+                             "yield function needs the total stress: a uniform initial stress, the "
+                             "consolidated chamber's; a free surface under gravity has none yet)")
         if self.continuum_constants not in ("lattice", "calibrated"):
             raise ValueError(f"continuum_constants must be 'lattice' or 'calibrated', "
                              f"got {self.continuum_constants!r}")
-        if self.continuum_constants == "calibrated" and self.dim != 2:
-            raise ValueError("continuum_constants = 'calibrated' is 2D only (the 3D continuum takes "
-                             "the affine estimate of its Hertz-Mindlin contacts)")
         if not (0 <= self.continuum_friction_deg < 90):
             raise ValueError(f"continuum_friction_deg must lie in [0, 90), got {self.continuum_friction_deg!r}")
         if not (0 <= self.continuum_dilatancy_deg <= self.continuum_friction_deg):
@@ -177,13 +177,11 @@ class PenetrationParameters:
             raise ValueError(f"continuum_hardening must be >= 0 Pa, got {self.continuum_hardening!r}")
         if not (np.isfinite(self.vertical_stress) and self.vertical_stress >= 0):
             raise ValueError(f"vertical_stress must be >= 0 Pa, got {self.vertical_stress!r}")
-        if self.vertical_stress > 0 and self.dim != 2:
-            raise ValueError("vertical_stress > 0 needs dim = 2 (the 3D chamber is loaded by "
-                             "gravity and its geostatic side traction only)")
         if self.lateral not in ("rigid", "stress"):
             raise ValueError(f"lateral must be 'rigid' (BC3) or 'stress' (BC1), got {self.lateral!r}")
         if self.lateral == "stress" and self.dim != 2:
-            raise ValueError("lateral = 'stress' needs dim = 2")
+            raise ValueError("lateral = 'stress' (BC1) needs dim = 2 (the 3D chamber's sides are "
+                             "rigid: BC3)")
         if not 0 < self.consolidation_tol < 1:
             raise ValueError(f"consolidation_tol must lie in (0, 1), got {self.consolidation_tol!r}")
         if self.consolidation_max_steps < 1:
