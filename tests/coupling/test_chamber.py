@@ -87,15 +87,22 @@ def test_3d_chamber_plate_holds_the_vertical_stress_and_the_cone_passes_it():
     assert not (wall.free_only[sim.nl.ww] & (sim.p.kind[sim.nl.wi] != 0)).any()
 
 
-def test_3d_coupled_chamber_carries_the_increment_on_rollers():
+def test_3d_coupled_chamber_carries_the_increment_on_rollers(tmp_path):
     prm = PenetrationParameters(**CHAMBER_3D)
-    model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
+    comm = MPI.COMM_WORLD
+    model = CoupledPenetration(prm, comm, log=lambda m: None)
     (servo,) = model.servos
     # the plate rests on the window's free grains after the band is held: it keeps their share
     assert servo.stress(model.sim) == pytest.approx(prm.vertical_stress, rel=1e-6)
     assert servo.area < (2 * (prm.window_half_width + prm.ghost_width * 2 * prm.radius)) ** 2
-    history = model.run(steps=3)
+    model.run(steps=1)
+    model.save_checkpoint(tmp_path / "ck")
+    history = model.run(steps=2)
     assert len(history) == 3 and np.isfinite([h["q_c"] for h in history]).all()
+    # a restart continues with the plate's servo (its area from the checkpoint) to the bit
+    again = CoupledPenetration(prm, comm, log=lambda m: None, checkpoint=tmp_path / "ck")
+    assert again.servos[0].area == servo.area
+    assert [h["q_c"] for h in again.run(steps=2)] == [h["q_c"] for h in history]
     assert np.abs(model.problem.w.x.array).max() < prm.depth
     # BC3 in a box: the sides on rollers (no normal displacement; they slide vertically)
     u = model.problem.w.sub(0).collapse()
