@@ -1,5 +1,7 @@
 """Scene files: defaults, overrides, and errors that name the key."""
 
+from pathlib import Path
+
 import pytest
 
 from coupling.apps.punch.scene import Scene
@@ -121,3 +123,11 @@ def test_scene_keys_set_the_parameters_they_name():
             others = [f.name for f in fields(owner) if f.name != name and getattr(got, f.name) != getattr(ref, f.name)]
             assert not others, f"{key} also changed {others}"
 
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parents[2] / "scenes").glob("*.toml")), ids=lambda p: p.stem)
+def test_every_shipped_scene_loads_and_round_trips(tmp_path, path):
+    """The scenes the README points to validate (every value in range, the 3D chamber's
+    vertical stress and box included) and survive a round trip through TOML."""
+    scene = load_scene(path)
+    assert load_scene(write(tmp_path, scene.to_toml())) == scene
