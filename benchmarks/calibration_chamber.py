@@ -98,6 +98,9 @@ parser.add_argument("--boxes", action="store_true",
                     help="also run full DEM in a rigid smooth box the size of each window with its "
                          "ghost band (the chamber's boundary condition on its sides): what a window "
                          "gives when its surround is rigid, beside what the continuum gives")
+parser.add_argument("--liggghts", type=int, default=0,
+                    help="3D: also run the reference's first N packings in LIGGGHTS (benchmarks/liggghts_chamber.py: "
+                         "the same packing, law and loading), one core each, timed in this invocation")
 parser.add_argument("--reuse", action="store_true",
                     help="take a case's record from --work if it ran with the same parameters")
 parser.add_argument("--reference", type=Path, default=None,
@@ -251,6 +254,24 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     return out
 
 
+def run_peer(bc: str, seed: int) -> dict:
+    """The full-DEM chamber of packing ``seed`` in LIGGGHTS (one core), reused like a case."""
+    from liggghts_chamber import run_case as run_liggghts
+
+    prm = parameters(bc, seed, None)
+    name = f"{bc}_liggghts_s{seed}"
+    path = args.work / f"{name}.json"
+    done = path.with_suffix(".out.json")
+    if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == {"parameters": prm}:
+        print(f"{name}: reused from {done}", flush=True)
+        return json.loads(done.read_text())
+    path.write_text(json.dumps({"parameters": prm}))
+    out = run_liggghts(prm, args.work / name, cores=1)
+    done.write_text(json.dumps(out))
+    print(f"{name}: {out['grains']} grains, set-up {out['setup_s']:.1f} s, push {out['push_s']:.1f} s", flush=True)
+    return out
+
+
 def smoothed(run: dict, key: str, grid: np.ndarray) -> np.ndarray:
     from coupling.apps.penetration.penetrators import filtered
 
@@ -339,6 +360,26 @@ def compare(bc: str) -> dict:
     print(f"{bc} full DEM: {reference['grains']} grains, one packing against the average "
           f"{reference['one_packing_rms_vs_average']:.1%} RMS, standard error of the average "
           f"{reference['standard_error_of_average']:.1%}", flush=True)
+    peer = None
+    if args.liggghts:
+        # the tool a user would pick instead: the same chamber's packings in LIGGGHTS; its
+        # q_c against our reference's average says how close the two codes' physics are
+        # (the cone a mesh there, a clump of spheres here)
+        peer_runs = [run_peer(bc, s) for s in ref_seeds[:args.liggghts]]
+        q_peer = np.array([smoothed(r, "q_c", grid) for r in peer_runs])
+        peer = {"grains": peer_runs[0]["grains"], "liggghts_version": peer_runs[0].get("liggghts_version"),
+                "total_s_mean": float(np.mean([r["setup_s"] + r["push_s"] for r in peer_runs])),
+                "push_s_mean": float(np.mean([r["push_s"] for r in peer_runs])),
+                "total_cpu_s_mean": cpu_total(peer_runs),
+                "granfe_full_dem_over_liggghts": reference["total_s_mean"]
+                / float(np.mean([r["setup_s"] + r["push_s"] for r in peer_runs])),
+                "q_c_mean": q_peer.mean(axis=0).tolist(),
+                "q_c_rms_vs_reference": rms(q_peer.mean(axis=0)),
+                "q_c_steady_vs_reference": (tail_mean(peer_runs) - ref_tail) / abs(ref_tail),
+                "runs": peer_runs}
+        print(f"{bc} LIGGGHTS: {peer['grains']} grains, {peer['total_s_mean']:.0f} s a packing (ours "
+              f"{reference['total_s_mean']:.0f} s), q_c {peer['q_c_rms_vs_reference']:.1%} RMS off our "
+              "reference", flush=True)
     cases = []
     for constants, continuum, hardening, window in [
             (k, c, h, w) for k in args.constants for c in args.continuum
@@ -367,6 +408,7 @@ def compare(bc: str) -> dict:
                 "total_cpu_s_mean": cpu,
                 "speedup_total_cpu": (reference["total_cpu_s_mean"] / cpu
                                       if reference["total_cpu_s_mean"] and cpu else None),
+                "speedup_vs_liggghts": peer["total_s_mean"] / total if peer else None,
                 "q_c_rms_error": rms(q),
                 "q_c_steady_error": abs(tail_mean(runs) - ref_tail) / abs(ref_tail),
                 "q_c_rms_error_per_packing": [rms(smoothed(r, "q_c", grid)) for r in runs],
@@ -405,7 +447,7 @@ def compare(bc: str) -> dict:
         if "q_c_mean" in c:
             c["q_c_bias"] = float(np.mean(np.array(c["q_c_mean"])[embedded] - q_ref[embedded]) / scale)
     return {"parameters": prm, "depth": grid.tolist(), "full_dem": reference, "coupled": cases,
-            "rigid_boxes": boxes}
+            "rigid_boxes": boxes, "liggghts": peer}
 
 
 def plot(results: dict) -> None:
@@ -436,6 +478,9 @@ def plot(results: dict) -> None:
             ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-", lw=2 if calibrated else 1,
                     label=f"coupled{plastic}{', calibrated' if calibrated else ''}, window "
                           f"{c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
+        if r.get("liggghts"):
+            ax.plot(np.array(r["liggghts"]["q_c_mean"]) / 1e3, d, color="C3", lw=1.5,
+                    label=f"LIGGGHTS, the same packings ({len(r['liggghts']['runs'])})")
         for b in r.get("rigid_boxes", []):
             ax.plot(np.array(b["q_c_mean"]) / 1e3, d, ":", lw=1.5,
                     label=f"full DEM in a rigid box of the {b['window_half_width'] * 100:.1f} cm window "
@@ -476,6 +521,8 @@ def plot(results: dict) -> None:
                 ax.annotate(f"{b['window_half_width'] * 100:g}", (b["total_s_mean"], b["q_c_rms_error"]),
                             fontsize=6, xytext=(3, -8), textcoords="offset points")
         ax.axvline(ref["total_s_mean"], color=color, ls="--", label=f"{bc}: full DEM run time")
+        if r.get("liggghts"):
+            ax.axvline(r["liggghts"]["total_s_mean"], color="C3", ls=":", label=f"{bc}: LIGGGHTS run time")
     ax.set_xscale("log")
     ax.set_xlabel("run time per packing [s] (set-up + push, one core)")
     ax.set_ylabel("relative RMS error of q_c against the full-DEM average")

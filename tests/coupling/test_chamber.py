@@ -120,6 +120,9 @@ def test_3d_coupled_chamber_carries_the_increment_on_rollers(tmp_path):
 
 
 def test_chamber_loading_is_named():
+    with pytest.raises(ValueError, match="reach the chamber's base"):
+        CoupledPenetration(PenetrationParameters(**(CHAMBER_3D | {"chamber_depth": 0.03})), MPI.COMM_WORLD,
+                           log=lambda m: None)
     with pytest.raises(ValueError, match="lateral = 'stress' \\(BC1\\) needs dim = 2"):
         PenetrationParameters(dim=3, vertical_stress=1e5, lateral="stress")
     with pytest.raises(ValueError, match="lateral must be 'rigid'"):

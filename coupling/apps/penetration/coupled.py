@@ -309,6 +309,12 @@ class CoupledPenetration:
         d = 2 * prm.radius
         band = prm.ghost_width * d
         a, b = prm.window_half_width, prm.window_depth
+        if self._refined_depth() + band >= prm.chamber_depth:
+            # before the grains settle (the mesh would refuse it after); a full-DEM run of the
+            # same parameters never meshes, so the check is the coupled run's
+            raise ValueError(f"window_depth = {prm.window_depth} m and its ghost band ({band:.3g} m) reach the "
+                             f"chamber's base (chamber_depth = {prm.chamber_depth} m): deepen the chamber or make "
+                             "the window shallower")
         # ---- grains: jittered lattice over window + band, then settle with the band held
         lo, hi = [-a - band] * (dim - 1) + [-b - band], [a + band] * (dim - 1) + [0.0]
         lattice, radius = grain_lattice(prm, tuple(lo), tuple(hi), rng)
