@@ -56,14 +56,19 @@ def _refine_toward(model, entities_dim, entities, h_near, h_far, dist_min, dist_
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
 
 
-def chamber_2d(model, width: float, depth: float, window_width: float, window_depth: float,
-               h_window: float, h_far: float) -> None:
-    """Plane-strain chamber refined inside and around the DE window ``|x| < w/2, -d < y < 0``."""
+def _check_box(width, depth, window_width, window_depth, h_window, h_far):
+    """A box chamber's sizes: positive, the window inside."""
     _check_positive(width=width, depth=depth, window_width=window_width,
                     window_depth=window_depth, h_window=h_window, h_far=h_far)
     if window_width >= width or window_depth >= depth:
         raise ValueError("the DE window must lie inside the chamber (window_width < width, "
                          "window_depth < depth)")
+
+
+def chamber_2d(model, width: float, depth: float, window_width: float, window_depth: float,
+               h_window: float, h_far: float) -> None:
+    """Plane-strain chamber refined inside and around the DE window ``|x| < w/2, -d < y < 0``."""
+    _check_box(width, depth, window_width, window_depth, h_window, h_far)
     occ = model.occ
     box = occ.addRectangle(-width / 2, -depth, 0, width, depth)
     occ.synchronize()
@@ -153,11 +158,7 @@ def chamber_3d_box(model, width: float, depth: float, window_width: float, windo
                    h_window: float, h_far: float) -> None:
     """Square chamber (axis z, surface z = 0) refined inside and around the DE window
     ``|x|, |y| < w/2, -d < z < 0``; the size grows linearly with the distance from it."""
-    _check_positive(width=width, depth=depth, window_width=window_width,
-                    window_depth=window_depth, h_window=h_window, h_far=h_far)
-    if window_width >= width or window_depth >= depth:
-        raise ValueError("the DE window must lie inside the chamber (window_width < width, "
-                         "window_depth < depth)")
+    _check_box(width, depth, window_width, window_depth, h_window, h_far)
     occ = model.occ
     box = occ.addBox(-width / 2, -width / 2, -depth, width, width, depth)
     occ.synchronize()
