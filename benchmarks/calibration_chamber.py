@@ -225,6 +225,15 @@ def worker(path: Path) -> None:
     path.with_suffix(".out.json").write_text(json.dumps(out))
 
 
+def reused(path: Path, case: dict) -> dict | None:
+    """With ``--reuse``, the record of the case at ``path`` if it ran with these parameters."""
+    done = path.with_suffix(".out.json")
+    if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == case:
+        print(f"{path.stem}: reused from {done}", flush=True)
+        return json.loads(done.read_text())
+    return None
+
+
 def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropolar",
              constants: str = "lattice", box: float | None = None, hardening: float = 0.0) -> dict:
     """One packing of one case in its own process: full DEM of the chamber (window None),
@@ -238,10 +247,9 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
         name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm{tag}'}_s{seed}"
         case = {"parameters": parameters(bc, seed, window, continuum, constants, hardening), "window": window}
     path = args.work / f"{name}.json"
-    done = path.with_suffix(".out.json")
-    if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == case:
-        print(f"{name}: reused from {done}", flush=True)
-        return json.loads(done.read_text())
+    old = reused(path, case)
+    if old is not None:
+        return old
     path.write_text(json.dumps(case))
     proc = subprocess.run([sys.executable, __file__, "--worker", str(path)], capture_output=True, text=True,
                           env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
@@ -261,13 +269,12 @@ def run_peer(bc: str, seed: int) -> dict:
     prm = parameters(bc, seed, None)
     name = f"{bc}_liggghts_s{seed}"
     path = args.work / f"{name}.json"
-    done = path.with_suffix(".out.json")
-    if args.reuse and done.exists() and path.exists() and json.loads(path.read_text()) == {"parameters": prm}:
-        print(f"{name}: reused from {done}", flush=True)
-        return json.loads(done.read_text())
+    old = reused(path, {"parameters": prm})
+    if old is not None:
+        return old
     path.write_text(json.dumps({"parameters": prm}))
     out = run_liggghts(prm, args.work / name, cores=1)
-    done.write_text(json.dumps(out))
+    path.with_suffix(".out.json").write_text(json.dumps(out))
     print(f"{name}: {out['grains']} grains, set-up {out['setup_s']:.1f} s, push {out['push_s']:.1f} s", flush=True)
     return out
 

@@ -669,10 +669,7 @@ class Simulation:
         halo copies' own contacts)."""
         w = self.walls
         if len(nl.wi) and w.free_only.any():
-            keep = ~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST))
-            if not keep.all():
-                nl.wi, nl.ww = nl.wi[keep], nl.ww[keep]
-                nl.whist, nl.wslip, nl.wetan = nl.whist[keep], nl.wslip[keep], nl.wetan[keep]
+            nl.keep_walls(~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST)))
 
     def compute_forces(self, update_history: bool = True):
         """Contact forces at the current state into ``p.force``/``p.torque`` and

@@ -392,6 +392,19 @@ class NeighbourList:
     _PAIR = ("pi", "pj", "img", "hist", "slip", "etan")
     _WALL = ("wi", "ww", "whist", "wslip", "wetan")
 
+    def keep_pairs(self, keep: np.ndarray) -> None:
+        """Drop the pair candidates where the bool mask ``keep`` is False (with their history)."""
+        self._keep(self._PAIR, keep)
+
+    def keep_walls(self, keep: np.ndarray) -> None:
+        """Drop the wall candidates where the bool mask ``keep`` is False (with their history)."""
+        self._keep(self._WALL, keep)
+
+    def _keep(self, names, keep):
+        if not keep.all():
+            for k in names:
+                setattr(self, k, getattr(self, k)[keep])
+
     def state_dict(self) -> dict:
         """Copies of the lists, the contact history, the build positions (``x0``, ``wp0``;
         ``h0`` and ``cut`` in a periodic cell) and ``builds``: where the next rebuild falls

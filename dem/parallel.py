@@ -301,14 +301,8 @@ class _LocalSimulation(Simulation):
             self._at = (x[self._ghosts].copy(), self._at[1])
 
     def _prune(self, nl):
-        keep = ~(self.halo[nl.pi] & self.halo[nl.pj])
-        if not keep.all():
-            nl.pi, nl.pj, nl.img = nl.pi[keep], nl.pj[keep], nl.img[keep]
-            nl.hist, nl.slip, nl.etan = nl.hist[keep], nl.slip[keep], nl.etan[keep]
-        keep = ~self.halo[nl.wi]
-        if not keep.all():
-            nl.wi, nl.ww = nl.wi[keep], nl.ww[keep]
-            nl.whist, nl.wslip, nl.wetan = nl.whist[keep], nl.wslip[keep], nl.wetan[keep]
+        nl.keep_pairs(~(self.halo[nl.pi] & self.halo[nl.pj]))
+        nl.keep_walls(~self.halo[nl.wi])
         super()._prune(nl)
 
 
