@@ -6,6 +6,10 @@
   taken out is booked as damping dissipation, so the ledger still closes.
 - :class:`ServoWall`: moves a planar wall along its normal to hold a confining stress
   (a proportional controller with a speed limit), as in triaxial/oedometer DEM practice.
+
+Each function takes a `dem.Simulation` or a `dem.DistributedSimulation` (then collectively:
+the same calls on every rank; a wall's force is the sum of the ranks' shares, `wall_force`,
+and the equilibrium measures sum over the ranks' owned particles).
 """
 
 from __future__ import annotations
@@ -17,7 +21,17 @@ import numpy as np
 
 from dem.state import FREE
 
-__all__ = ["ServoWall", "relax", "unbalanced_force_ratio", "mean_force_ratio", "advance"]
+__all__ = ["ServoWall", "relax", "unbalanced_force_ratio", "mean_force_ratio", "advance",
+           "wall_force"]
+
+
+def wall_force(sim, wall: int) -> np.ndarray:
+    """(3,) [N]: the resultant of the particles on wall ``wall`` at the last force pass
+    (``walls.force[wall]`` of a `Simulation`; of a `DistributedSimulation`, collective, the
+    sum of every rank's share, the same bits on every rank: `DistributedSimulation.
+    wall_forces`)."""
+    total = getattr(sim, "wall_forces", None)
+    return sim.walls.force[wall] if total is None else total()[wall]
 
 
 @dataclass
@@ -41,11 +55,13 @@ class ServoWall:
             raise ValueError(f"ServoWall.target must be finite, got {self.target!r}")
 
     def stress(self, sim) -> float:
-        """Compressive normal stress the particles put on the wall [Pa]."""
-        w = sim.walls
-        return float(-(w.force[self.wall] @ w.normal[self.wall]) / self.area)
+        """Compressive normal stress the particles put on the wall [Pa] (collective on a
+        `DistributedSimulation`: its wall's force summed over the ranks)."""
+        return float(-(wall_force(sim, self.wall) @ sim.walls.normal[self.wall]) / self.area)
 
     def __call__(self, sim) -> None:
+        """Set the wall's velocity from the stress now (on a `DistributedSimulation` every
+        rank sets the same: its ranks see the same summed force)."""
         w = sim.walls
         if not 0 <= self.wall < len(w):
             raise ValueError(f"ServoWall.wall = {self.wall} but the simulation has {len(w)} walls")
@@ -87,20 +103,41 @@ def advance(sim, n: int, controllers=()) -> None:
         sim.step(1)
 
 
+def mean_force_sums(sim, rows=None, kinds=None) -> tuple[float, int, float, int]:
+    """(sum |F_i + m_i g| [N] over the FREE particles, their count, sum |f_c| [N] over the
+    contacts that touch a FREE particle, their count): `mean_force_ratio`'s sums, of a
+    `Simulation`'s rows ``rows`` (bool (n,), a rank's owned ones: a contact counts on the
+    owner of its first particle) with ``kinds`` (n,) the particles' own kinds if not
+    ``p.kind`` (a rank's halo copies are GHOST in its local run). Pairs of two GHOST
+    particles (a rigid clump's own contacts) are left out."""
+    p = sim.p
+    kinds = p.kind if kinds is None else kinds
+    free = kinds == FREE
+    mine = free if rows is None else free & rows
+    net = np.linalg.norm(p.force[mine] + p.mass[mine, None] * sim.gravity, axis=1)
+    if rows is None:
+        pairs, f = sim.contact_forces()
+    else:  # the kinds of the local run would drop a halo grain's contacts with a GHOST
+        pairs, f = sim.contact_forces(skip_ghost_pairs=False)
+    touching = free[pairs[:, 0]] | free[pairs[:, 1]]
+    if rows is not None:
+        touching &= rows[pairs[:, 0]]
+    fc = np.linalg.norm(f[touching], axis=1)
+    return float(net.sum()), int(net.size), float(fc.sum()), int(fc.size)
+
+
 def mean_force_ratio(sim) -> float:
     """The mean unbalanced force over the FREE particles, ``|F_i + m_i g|``, over the mean
     contact force of their contacts (PFC's ratio): the measure of equilibrium for a packing
     loaded through walls, whose particles' contact resultants are all unbalanced force
-    (`unbalanced_force_ratio` is then 1 until the very end). A `Simulation` only (it
-    evaluates the pair loop once more, `Simulation.contact_forces`)."""
-    p = sim.p
-    free = p.kind == FREE
-    net = np.linalg.norm(p.force[free] + p.mass[free, None] * sim.gravity, axis=1)
-    pairs, f = sim.contact_forces()
-    touching = free[pairs[:, 0]] | free[pairs[:, 1]]
-    if not touching.any() or not net.size:
+    (`unbalanced_force_ratio` is then 1 until the very end). It evaluates the pair loop once
+    more (`Simulation.contact_forces`); collective on a `DistributedSimulation` (its sums
+    over the ranks)."""
+    sums = getattr(sim, "mean_force_sums", None)  # a DistributedSimulation's
+    net, n_net, contact, n_contact = sums() if sums is not None else mean_force_sums(sim)
+    if n_contact == 0 or n_net == 0:
         return math.inf
-    return float(net.mean() / np.linalg.norm(f[touching], axis=1).mean())
+    return float((net / n_net) / (contact / n_contact))
 
 
 def relax(sim, tol: float = 1e-4, max_steps: int = 200_000, damping: float | None = None,
@@ -112,8 +149,9 @@ def relax(sim, tol: float = 1e-4, max_steps: int = 200_000, damping: float | Non
 
     ``damping`` c [1/s] defaults to ``0.02 / dt`` (2 % of the velocity per step). Raises
     ``RuntimeError`` naming the ratio reached if ``max_steps`` are not enough. ``sim``: a
-    `Simulation`, or a `dem.DistributedSimulation` (collective; no controllers: their hook
-    would run on one rank's share of the walls).
+    `Simulation`, or a `dem.DistributedSimulation` (collective: every rank calls the
+    controllers at the same steps, and a `ServoWall` reads its wall's force summed over
+    the ranks, so every rank moves the wall alike).
     """
     if not 0 < tol < 1:
         raise ValueError(f"tol must lie in (0, 1), got {tol!r}")

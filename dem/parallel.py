@@ -32,6 +32,13 @@ first step's state is written before the halo exchange, so that a jump of the mo
 by the displacement criterion and a decomposition. ``decay`` damps the owned FREE particles
 in the local run, and the halo prediction applies it where the integrator does.
 
+Walls are the same on every rank (each local run carries a copy and advances it with the
+wall's velocity); a rank's wall force is its owned particles' share. `wall_forces` sums
+the shares in rank order (the same bits on every rank and every run), and a ``hook`` of
+`step` runs on every rank after each force pass, as `Simulation.step`'s: a `dem.ServoWall`
+there reads the summed force and sets the same velocity on every rank (`dem.relax` with
+controllers). The sum differs from the serial run's by round-off (another order).
+
 The energy ledger (`DistributedSimulation.energy`) books every term once: a particle's
 kinetic energy and works on its owner, a pair's elastic energy and the change of its
 spring energy on the owner of its lower id, a wall contact on the particle's owner (a halo
@@ -51,7 +58,7 @@ import numpy as np
 from numba import njit
 
 from dem.contact import HIST, ContactMaterial
-from dem.control import unbalanced_force_sums
+from dem.control import mean_force_sums, unbalanced_force_sums
 from dem.errors import BlowUpError, DomainError, TimeStepError
 from dem.forces import NOUT, pair_forces
 from dem.integrate import Simulation, _kinetic_finite
@@ -254,6 +261,20 @@ def _exchange_rows(comm, rows, dest):
     return recv
 
 
+def _rank_sum(comm, a) -> np.ndarray:
+    """The sum of the float array ``a`` over the ranks, added in rank order: the same bits on
+    every rank and every run (an Allreduce leaves the order to the MPI library)."""
+    a = np.ascontiguousarray(a, float)
+    if comm.size == 1:
+        return a.copy()
+    parts = np.empty((comm.size,) + a.shape)
+    comm.Allgather(a, parts)
+    total = parts[0].copy()
+    for r in range(1, comm.size):
+        total += parts[r]
+    return total
+
+
 def _agree(comm, error):
     """Raise on every rank the error (an exception or a message) of the first rank that has
     one, so that no rank is left waiting in a collective call."""
@@ -349,7 +370,9 @@ class DistributedSimulation:
 
     As `dem.Simulation`: ``step(n, prescribed=..., decay=...)`` (motions by global id),
     `damping_removed`, `set_external_force` (by global id), `energy`, and `dem.relax` and
-    `dem.unbalanced_force_ratio` take it (collectively). By global id: `values_of`
+    `dem.unbalanced_force_ratio`, `dem.control.mean_force_ratio` take it (collectively),
+    and ``step(hook=...)`` (collective: `dem.relax` with `dem.ServoWall` controllers; the
+    walls' forces summed over the ranks by `wall_forces`). By global id: `values_of`
     (x, v, omega, force, torque of particles from their owners), `force_on` and
     `torque_on` (a clump's resultant). Set dt through the constructor (the local runs
     keep the one they were built with).
@@ -358,7 +381,8 @@ class DistributedSimulation:
     ``owned`` (bool mask of its owned particles), ``gid`` (their global ids), ``time``,
     ``nsteps``, ``dt``, ``decompositions`` (also those that found owners and halos
     unchanged), ``migrated`` (particles that changed rank, over all decompositions and
-    ranks).
+    ranks), ``walls`` (the `WallSet` of the local run, the same on every rank but for
+    ``force``: this rank's share; set ``velocity`` alike on every rank).
     """
 
     def __init__(self, particles, materials, walls=(), gravity=(0.0, 0.0, 0.0), dt=None, *,
@@ -384,6 +408,8 @@ class DistributedSimulation:
         self._damped = 0.0  # its share of `damping_removed` likewise
         self._unbooked0 = 0.0
         self._pk = self._decay = None  # a step call's prescribed motions and damping
+        self._hook, self._stop = None, False  # a step call's hook, and its request to stop
+        self._wall_total = None  # `wall_forces` of the last force pass, once summed
         self.local, self._plan = None, None
         self._ext = None   # (global ids (k,) sorted, forces (k, 3) [N]) of set_external_force
         self._decompose(chunk)
@@ -538,7 +564,7 @@ class DistributedSimulation:
         holds particles (any split adds up to the same resultants)."""
         nw = len(self.walls)
         wf = np.zeros((nw, 9)) if self.local is None else self.local.wall_resultants().copy()
-        return self.comm.allreduce(wf) if self.comm.size > 1 and nw else wf
+        return _rank_sum(self.comm, wf) if nw else wf
 
     def _halo_sends(self, x):
         """Collective: which of the owned positions x (n, 3) go as halo copies to which rank
@@ -631,7 +657,8 @@ class DistributedSimulation:
         installed as ``self.local``."""
         w = self.walls
         specs = [PlaneWall(tuple(w.point[k]), tuple(w.normal[k]), tuple(w.velocity[k]),
-                           int(w.material[k]), bool(w.rigid[k])) for k in range(len(w))]
+                           int(w.material[k]), bool(w.rigid[k]), bool(w.free_only[k]))
+                 for k in range(len(w))]
         sim = _LocalSimulation(p, is_halo, self.materials, specs, self.gravity, self.dt,
                                force_dt=True, skin=self.skin, allow_overlap=True)
         # the local run continues the walls exactly (a spec re-normalises the normal)
@@ -695,6 +722,25 @@ class DistributedSimulation:
             _unpack(recv, rspec[0], s.p.x, s.p.v, s.p.omega)
         return False
 
+    def _refresh_halos(self) -> None:
+        """Collective, between step calls: the halo copies take their owners' state now.
+        (A call leaves them half a kick behind: its last step sends nothing. The next call's
+        first exchange overwrites them, so this changes nothing in the run.)"""
+        if self.comm.size == 1:
+            return
+        send, recv, sspec, rspec, _, _ = self._plan
+        s = self.local
+        if s is not None:
+            p = s.p
+            _predict(p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia, p.kind,
+                     self.owned, self._slot, self.gravity, 0.5 * self.dt, 0.0, 0, 1.0,
+                     self._xref, sspec[0])
+            if len(self._dups[0]):
+                sspec[0][self._dups[0]] = sspec[0][self._dups[1]]
+        self.comm.Alltoallv(sspec, rspec)
+        if s is not None:
+            _unpack(recv, rspec[0], s.p.x, s.p.v, s.p.omega)
+
     def _forward(self, values):
         """Int values (n_local,) of owned particles copied into their halo copies."""
         send, recv, _, _, sc, rc = self._plan
@@ -715,26 +761,27 @@ class DistributedSimulation:
         (owned and halo) before each step's drift, the same bits as the serial run at
         every step of the call, through decompositions; ``decay`` scales the owned FREE
         particles' v and omega before each step's drift, the energy it takes out booked as
-        dissipated and summed in `damping_removed`. ``hook``: not supported (it would run
-        on each rank's local run alone, inside the halo exchange); None only."""
-        if hook is not None:
-            raise ValueError("DistributedSimulation.step takes no hook: act between step "
-                             "calls (a controller of dem.control.relax neither)")
+        dissipated and summed in `damping_removed`. ``hook()``: as `Simulation.step`'s, run
+        after each step's force pass, before its second half-kick, on every rank: it is
+        collective (it may call `wall_forces`, and set wall velocities, alike on every
+        rank; ``time`` and ``nsteps`` hold their values at the start of the call), and a
+        true return, the same on every rank, ends the call after that step. Returns the
+        number of steps done."""
         n = int(n)
         self._pk = None if prescribed is None else prescribed.pack(n, self.dt, self._kinds)
-        self._decay = decay
+        self._decay, self._hook, self._stop = decay, hook, False
         at = 0  # steps done in this call (the prescribed coefficients' row)
-        while at < n:
+        while at < n and not self._stop:
             k = min(n - at, self.check_every - self.nsteps % self.check_every)
-            while k > 0:
+            while k > 0 and not self._stop:
                 done = self._advance(k, at)
                 k, at = k - done, at + done
             if self.nsteps % self.check_every == 0:
                 self._check()
         if self.nsteps % self.check_every:
             self._check()
-        self._pk = self._decay = None
-        return n
+        self._pk = self._decay = self._hook = None
+        return at
 
     def _local_motion(self, at: int) -> _LocalMotion | None:
         """The call's prescribed motions (packed by global id) of the rows this rank holds,
@@ -755,8 +802,10 @@ class DistributedSimulation:
         halo would go stale, then a decomposition), from step ``at`` of the `step` call;
         returns the steps done."""
         decay = self._decay
+        self._wall_total = None
         if self.comm.size == 1:  # no halo, nothing to exchange or decompose
-            done = self.local.step(n, prescribed=self._local_motion(at), decay=decay)
+            done = self.local.step(n, hook=None if self._hook is None else self._after_pass,
+                                   prescribed=self._local_motion(at), decay=decay)
         else:
             motion = self._local_motion(at)
             if motion is not None:
@@ -790,10 +839,12 @@ class DistributedSimulation:
         """`Simulation.step` hook, after each force pass (collective): True to end the
         local call after this step (the next drift could carry a particle beyond the halo);
         else the halo copies as the next step's drift will make them. The last step of a
-        call does neither: the next call decides and refreshes from the state it ends in."""
+        call does neither: the next call decides and refreshes from the state it ends in.
+        The caller's hook runs first, at every force pass."""
+        stop = self._after_pass()
         self._left -= 1
-        if self._left == 0:
-            return False
+        if self._left == 0 or stop:
+            return stop
         if self._exchange(2):
             return True
         if not self._relisted and self._d2 > (0.5 * self.skin) ** 2:
@@ -803,6 +854,15 @@ class DistributedSimulation:
             self._rebuild_lists()
             self._relisted = True
         return False
+
+    def _after_pass(self) -> bool:
+        """After each force pass (collective): the walls' summed forces are stale; the
+        caller's hook, if any (True: it ends the `step` call after this step)."""
+        self._wall_total = None
+        if self._hook is None:
+            return False
+        self._stop = bool(self._hook())
+        return self._stop
 
     # ---------------------------------------------------------------- external forces
     def set_external_force(self, gids, force) -> None:
@@ -927,6 +987,7 @@ class DistributedSimulation:
         self._damped = float(d.get("damping_removed", 0.0))
         self._install_external(included=True)
         self._good = None
+        self._wall_total = None
         self._check()
 
     # ---------------------------------------------------------------- results (collective)
@@ -947,6 +1008,29 @@ class DistributedSimulation:
         v = np.zeros(2) if self.local is None else np.array(
             unbalanced_force_sums(self.local, self.owned))
         return self.comm.allreduce(v) if self.comm.size > 1 else v
+
+    def mean_force_sums(self) -> tuple[float, int, float, int]:
+        """`dem.control.mean_force_ratio`'s sums over all ranks (collective): each rank's
+        owned FREE particles and the contacts whose first particle it owns, counted with
+        the particles' own kinds (a halo copy is GHOST in its local run)."""
+        self._refresh_halos()  # a pair across ranks sees its copy's state now
+        v = np.zeros(4)
+        if self.local is not None:
+            v[:] = mean_force_sums(self.local, self.owned, self._kinds[self.gid])
+        v = _rank_sum(self.comm, v)
+        return float(v[0]), int(v[1]), float(v[2]), int(v[3])
+
+    def wall_forces(self) -> np.ndarray:
+        """(nw, 3) [N]: the resultant of the particles on each wall at the last force pass,
+        the ranks' shares added in rank order (the same bits on every rank and every run;
+        collective, summed once per force pass: a `ServoWall` and `dem.relax`'s check read
+        it). A view: do not write it."""
+        if self._wall_total is None:
+            nw = len(self.walls)
+            share = np.zeros((nw, 3)) if self.local is None else \
+                self.local.wall_resultants()[:, :3]
+            self._wall_total = _rank_sum(self.comm, share)
+        return self._wall_total
 
     def values_of(self, gids, key: str = "force") -> np.ndarray:
         """(k, 3) ``key`` (x, v, omega, force, torque) of the particles ``gids`` (k,), in

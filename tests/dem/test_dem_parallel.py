@@ -342,16 +342,12 @@ def test_prescribed_clump_decay_and_relax_match_serial():
 
 
 def test_distributed_step_refuses_what_it_cannot_do():
-    """A prescribed motion of a FREE particle, a step hook and unknown ids are named."""
+    """A prescribed motion of a FREE particle and unknown ids are named."""
     from mpi4py import MPI
 
     p, mats, walls, pen, _ = chamber()
     d = DistributedSimulation(p, mats, walls, comm=MPI.COMM_SELF, allow_overlap=True)
     with pytest.raises(ValueError, match="not GHOST"):
         d.step(1, prescribed=dem.Prescribed(dem.Translated([0], p.x[:1], (0, 0, 1))))
-    with pytest.raises(ValueError, match="no hook"):
-        d.step(1, hook=lambda: False)
     with pytest.raises(ValueError, match="gids must lie in"):
         d.values_of([p.n])
-    with pytest.raises(ValueError, match="no hook"):
-        dem.relax(d, controllers=[dem.ServoWall(0, 1.0, 1.0, 1.0, 1.0)])
