@@ -75,10 +75,14 @@ def packing_modulus(prm) -> float:
     return float((e_star**2 * max(prm.vertical_stress, prm.density * prm.gravity * prm.radius)) ** (1 / 3))
 
 
-def consolidate(sim, prm, log=print, controllers=()) -> dict:
+def consolidate(sim, prm, log=print, controllers=(), height: float | None = None,
+                grains: int | None = None) -> dict:
     """Dynamic relaxation under the surcharge (or the servo-controlled top plate among
     ``controllers``) to ``prm.consolidation_tol`` (the walls or the ghosts hold the sides and
-    the bottom). Returns relax's record with the wall time."""
+    the bottom). ``height`` [m] of the specimen and its number of ``grains`` (for the log)
+    default to the FREE particles' extent plus a diameter and their count (a `dem.
+    DistributedSimulation`, whose particles no rank holds, is given them). Returns relax's
+    record with the wall time."""
     from dem import relax
 
     t0 = time.perf_counter()
@@ -86,7 +90,10 @@ def consolidate(sim, prm, log=print, controllers=()) -> dict:
     # c = sqrt(stiffness / density)): the default 2 % a step overdamps it, and a creeping
     # consolidation takes ten times the steps
     ax = VERTICAL[prm.dim]
-    height = float(np.ptp(sim.p.x[sim.p.kind == 0, ax])) + 2 * prm.radius
+    if height is None:
+        height = float(np.ptp(sim.p.x[sim.p.kind == 0, ax])) + 2 * prm.radius
+    if grains is None:
+        grains = int((sim.p.kind == 0).sum())
     wave = np.sqrt(packing_modulus(prm) / prm.density)
     damping = 2 * (np.pi * wave / (2 * height))
     # a packing loaded through a plate: every contact resultant is unbalanced force until the
@@ -97,7 +104,7 @@ def consolidate(sim, prm, log=print, controllers=()) -> dict:
                  damping=damping, controllers=controllers,
                  ratio=mean_force_ratio if controllers else unbalanced_force_ratio)
     info["wall_time"] = time.perf_counter() - t0
-    log(f"consolidated {int((sim.p.kind == 0).sum())} grains under {prm.vertical_stress / 1e3:.4g} kPa in "
+    log(f"consolidated {grains} grains under {prm.vertical_stress / 1e3:.4g} kPa in "
         f"{info['steps']} steps ({info['wall_time']:.1f} s), unbalanced force ratio {info['ratio']:.2g}")
     return info
 

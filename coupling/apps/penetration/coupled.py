@@ -56,6 +56,7 @@ import json
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import dolfinx_solver  # noqa: F401
 
@@ -170,18 +171,21 @@ def grain_lattice(prm, lo, hi, rng):
     return x, prm.radius * (1 - prm.jitter * rng.random(len(x)))
 
 
-def _settle(sim, prm, n: int, free_rows, width: float, log, plate: int | None = None) -> list:
+def _settle(sim, prm, n: int, free_rows, width: float, log, plate: int | None = None,
+            height: float | None = None) -> list:
     """Settle the grains before the push: under gravity for ``prm.settle_time`` (a free
     surface), or consolidated under the chamber's vertical stress on the top row of
     ``free_rows`` (among the first ``n`` rows, the grains) spanning ``width`` [m], or under
-    the top plate (wall ``plate``, 3D) (:mod:`coupling.apps.penetration.chamber`).
-    Returns the servos to keep acting in the push (the plate's)."""
+    the top plate (wall ``plate``, 3D) (:mod:`coupling.apps.penetration.chamber`; a
+    `dem.DistributedSimulation` is given the specimen's ``height`` [m]). Returns the servos
+    to keep acting in the push (the plate's)."""
     if prm.vertical_stress == 0:
         sim.step(int(np.ceil(prm.settle_time / sim.dt)))
         return []
     if plate is not None:
         servo = plate_servo(prm, plate, width ** (prm.dim - 1))
-        consolidate(sim, prm, log, controllers=[servo])
+        consolidate(sim, prm, log, controllers=[servo], height=height,
+                    grains=None if height is None else n)
         return [servo]
     apply_loads(sim, surcharge(sim.p.x[:n], free_rows, prm, width))
     consolidate(sim, prm, log)
@@ -208,15 +212,43 @@ def _load_dem_state(sim: Simulation, data) -> None:
     sim.load_state({k[4:]: v for k, v in data.items() if k.startswith("dem.")})
 
 
+def _distributed_run(p, materials, walls, prm, radius, comm):
+    """The full DEM's `dem.DistributedSimulation` over the ranks of ``comm`` (``p`` on every
+    rank; rank 0's is scattered): the serial run's step, set through the constructor."""
+    from dem.parallel import DistributedSimulation
+
+    # as the serial run, dt_factor scales the step after its check (force_dt)
+    return DistributedSimulation(p if comm.rank == 0 else None, materials, walls, _gravity(prm),
+                                 dt=dem_time_step(prm, radius) * prm.dt_factor, comm=comm,
+                                 force_dt=True, allow_overlap=True)
+
+
 class DemPenetration:
     """The same penetration fully as DEM: grains fill the whole chamber (a box of the
     chamber's width in 3D), held by walls (no continuum objects are built). The reference
-    for :class:`CoupledPenetration`."""
+    for :class:`CoupledPenetration`.
 
-    def __init__(self, prm: PenetrationParameters, log=print):
+    ``comm``: a communicator of more than one rank runs the grains as a `dem.
+    DistributedSimulation` over its ranks (the 3D chamber; every rank
+    constructs and runs the model, rank 0 alone logs): the plate's servo reads the plate's
+    force summed over the ranks, the cone's spheres move by global id and their forces come
+    from their owners, so every rank holds the same history, equal to the serial one to
+    round-off at first (the packings are chaotic). None or one rank: a `dem.Simulation`.
+    An explicit argument, not the launcher's rank count: a serial model inside an MPI job
+    (a test, the coupled runs' own references) stays serial."""
+
+    def __init__(self, prm: PenetrationParameters, log=print, comm=None):
         from dem import PlaneWall
 
         self.prm = prm
+        self.distributed = comm is not None and comm.size > 1
+        if self.distributed:
+            if prm.dim != 3:  # (2D: its surcharge and BC1 servos read every particle)
+                raise ValueError(f"DemPenetration on {comm.size} ranks: the 3D chamber only "
+                                 f"(dim = 3), got dim = {prm.dim}")
+            if comm.rank != 0:
+                def log(message):
+                    pass
         rng = np.random.default_rng(prm.seed)
         W, H, dim, ax = prm.chamber_width, prm.chamber_depth, prm.dim, VERTICAL[prm.dim]
         lo = (-W / 2, -H) if dim == 2 else (-W / 2, -W / 2, -H)
@@ -240,26 +272,43 @@ class DemPenetration:
             plate = len(walls)
             walls.append(top_plate(x, radius, dim))
         self.n_grains, self.pen_index = n, np.arange(n, n + len(pen))
-        self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
-                              dt=dem_time_step(prm, radius), allow_overlap=True)
-        self.sim.dt *= prm.dt_factor
-        self.sim.compute_forces(update_history=False)
-        self.clump_internal = self.sim.p.force[self.pen_index].copy()
+        height = None  # the specimen's, for the consolidation (the serial run reads its own)
+        if self.distributed:
+            self.sim = _distributed_run(p, materials, walls, prm, radius, comm)
+            height = float(np.ptp(x[:, ax])) + 2 * prm.radius
+        else:
+            self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
+                                  dt=dem_time_step(prm, radius), allow_overlap=True)
+            self.sim.dt *= prm.dt_factor
+            self.sim.compute_forces(update_history=False)
+        self.clump_internal = self.clump_forces()
         t0 = time.perf_counter()
-        self.servos = _settle(self.sim, prm, n, np.arange(n), W, log, plate)
+        self.servos = _settle(self.sim, prm, n, np.arange(n), W, log, plate, height)
         # BC1: the side walls servo-controlled at the lateral stress they carry now
         # (the 2D disks' modulus is of the order of kn, N/m per m thickness)
         if prm.lateral == "stress":
             self.servos += side_servos(self.sim, list(range(2 * (dim - 1))), float(np.ptp(self.sim.p.x[:n, ax])),
                                        W, prm.kn, prm.substeps * self.sim.dt, prm.velocity)
-        lower_penetrator(self.sim.p, n, self.pen0, r_pen, prm)
+        grains = self.sim.p if not self.distributed else SimpleNamespace(
+            x=np.vstack([self.sim.values_of(np.arange(n), "x"), self.pen0]), radius=p.radius)
+        # (distributed: the clump is where pen0 says from the first prescribed step on)
+        lower_penetrator(grains, n, self.pen0, r_pen, prm)
         log(f"full DEM: settled {n} grains in {time.perf_counter() - t0:.1f} s")
         self.history: list[dict] = []
 
+    def clump_forces(self) -> np.ndarray:
+        """(k, 3) [N]: the forces on the clump's spheres now, their own contacts included
+        (collective when distributed: from the spheres' owners)."""
+        if self.distributed:
+            return self.sim.values_of(self.pen_index, "force")
+        return self.sim.p.force[self.pen_index].copy()
+
     def run(self, progress=None):
+        """Push the cone to ``prm.depth`` in blocks of ``prm.substeps`` DEM steps, the servos
+        acting once a block; returns the history of cone records (every rank's, when
+        distributed)."""
         prm, sim = self.prm, self.sim
         check_push(prm, sim.dt)
-        p = sim.p
         block = prm.substeps * sim.dt
         n_steps = int(np.ceil(prm.depth / prm.velocity / block))
         depth, t = 0.0, 0.0
@@ -270,7 +319,7 @@ class DemPenetration:
             depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), depth, prm.velocity,
                               VERTICAL[prm.dim])
             t += block
-            f = p.force[self.pen_index] - self.clump_internal
+            f = self.clump_forces() - self.clump_internal
             self.history.append(cone_record(prm, f, self.parts, depth, k + 1, t,
                                             wall_time=time.perf_counter() - t0))
             if progress is not None:
