@@ -20,7 +20,10 @@ traction-free, sides on rollers (BC3) or traction-free (BC1)), the same packings
 With ``--boxes``, also full DEM of each window with its ghost band alone, inside the
 chamber's walls (rigid, smooth): what the window gives when its surround is rigid.
 Every case runs in its own process (``--worker``), so its wall times (set-up: building and
-consolidating; push) and its peak memory (``ru_maxrss``) are its own.
+consolidating; push) and its peak memory (``ru_maxrss``) are its own. With
+``--reference-ranks N`` (3D) the full-DEM reference runs on a `dem.DistributedSimulation` over
+N MPI ranks (``mpiexec -n N``, one numba thread each); its record then holds ``ranks``, its
+CPU seconds and peak memory summed over the ranks.
 
 Per case: q_c(depth) and f_s(depth) (ISO 22476-1 sleeve, :func:`coupling.apps.penetration.
 penetrators.cone_record`), smoothed over ``--smooth``; the error of the seed-averaged q_c
@@ -101,6 +104,9 @@ parser.add_argument("--boxes", action="store_true",
 parser.add_argument("--liggghts", type=int, default=0,
                     help="3D: also run the reference's first N packings in LIGGGHTS (benchmarks/liggghts_chamber.py: "
                          "the same packing, law and loading), one core each, timed in this invocation")
+parser.add_argument("--reference-ranks", type=int, default=1,
+                    help="3D: MPI ranks of each full-DEM reference packing (mpiexec -n N beside this "
+                         "script's Python; a dem.DistributedSimulation, one numba thread a rank)")
 parser.add_argument("--reuse", action="store_true",
                     help="take a case's record from --work if it ran with the same parameters")
 parser.add_argument("--reference", type=Path, default=None,
@@ -126,6 +132,9 @@ for key, two, three in (("cone_grains", 6.0, 4.0), ("depth_ratio", 0.8, 0.35),
     if getattr(args, key) is None:
         setattr(args, key, two if args.dim == 2 else three)
 
+if args.reference_ranks < 1 or (args.reference_ranks > 1 and args.dim != 3):
+    parser.error(f"--reference-ranks {args.reference_ranks}: >= 1, and above 1 only with --dim 3 "
+                 f"(the full DEM distributed is the 3D chamber's)")
 LATERAL = {"BC3": "rigid", "BC1": "stress"}
 
 
@@ -183,9 +192,11 @@ def worker(path: Path) -> None:
 
     case = json.loads(path.read_text())
     prm = PenetrationParameters(**case["parameters"])
+    comm = MPI.COMM_WORLD
     t0, c0 = time.perf_counter(), time.process_time()
     if case["window"] is None:
-        model = DemPenetration(prm, log=lambda m: None)
+        # every rank of an mpiexec launch (``ranks`` in the case) runs the distributed model
+        model = DemPenetration(prm, log=lambda m: None, comm=comm if case.get("ranks", 1) > 1 else None)
     else:
         model = CoupledPenetration(prm, MPI.COMM_WORLD, log=lambda m: None)
     t1, c1 = time.perf_counter(), time.process_time()
@@ -207,12 +218,16 @@ def worker(path: Path) -> None:
             history = model.history
     t2, c2 = time.perf_counter(), time.process_time()
     # CPU seconds beside the wall times: a neighbour on a shared core stretches the wall
-    # time, far less the CPU time
+    # time, far less the CPU time (over all ranks of a distributed reference, as its memory)
+    cpu = comm.allreduce(np.array([c1 - c0, c2 - c1]))
+    memory = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    if comm.rank != 0:
+        return
     out = {"grains": int(model.n_grains), "setup_s": t1 - t0, "push_s": t2 - t1,
-           "setup_cpu_s": c1 - c0, "push_cpu_s": c2 - c1,
+           "setup_cpu_s": float(cpu[0]), "push_cpu_s": float(cpu[1]),
            "interface": prm.interface, "loose_exchange_failed": failed,
            "stopped": bool(failed and "iterated" in failed),
-           "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+           "peak_memory_mb": memory,
            "dem_steps": int(model.sim.nsteps), "dt": float(model.sim.dt),
            "depth": [h["depth"] for h in history], "q_c": [h["q_c"] for h in history],
            "f_s": [h["f_s"] for h in history]}
@@ -222,6 +237,8 @@ def worker(path: Path) -> None:
         out["split_s"] = {k: float(np.sum([t.get(k, 0.0) for t in model.step_timings]))
                           for k in model.step_timings[0]}
         out["calibration"] = model.contact_stats.get("calibration")
+    if case.get("ranks", 1) > 1:
+        out["ranks"] = comm.size
     path.with_suffix(".out.json").write_text(json.dumps(out))
 
 
@@ -246,18 +263,25 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     else:
         name = f"{bc}_{'full' if window is None else f'w{window * 1000:.0f}mm{tag}'}_s{seed}"
         case = {"parameters": parameters(bc, seed, window, continuum, constants, hardening), "window": window}
+    launch = [sys.executable, __file__, "--worker"]
+    if window is None and box is None and args.reference_ranks > 1:
+        # the reference distributed (named apart: a record of another rank count is not reused)
+        name, case["ranks"] = f"{name}_n{args.reference_ranks}", args.reference_ranks
+        launch = [str(Path(sys.executable).parent / "mpiexec"), "-n", str(args.reference_ranks)] + launch
     path = args.work / f"{name}.json"
     old = reused(path, case)
     if old is not None:
         return old
     path.write_text(json.dumps(case))
-    proc = subprocess.run([sys.executable, __file__, "--worker", str(path)], capture_output=True, text=True,
+    proc = subprocess.run(launch + [str(path)], capture_output=True, text=True,
                           env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
     if proc.returncode:
         raise RuntimeError(f"case {name} failed:\n{proc.stderr[-3000:]}")
     out = json.loads(path.with_suffix(".out.json").read_text())
-    print(f"{name}: {out['grains']} grains, set-up {out['setup_s']:.1f} s, push {out['push_s']:.1f} s, "
-          f"peak {out['peak_memory_mb']:.0f} MB, mean q_c (last half) "
+    ranks = f" on {out['ranks']} ranks" if "ranks" in out else ""
+    cpu = out.get("setup_cpu_s", np.nan) + out.get("push_cpu_s", np.nan)
+    print(f"{name}: {out['grains']} grains{ranks}, set-up {out['setup_s']:.1f} s, push {out['push_s']:.1f} s "
+          f"(CPU {cpu:.1f} s), peak {out['peak_memory_mb']:.0f} MB, mean q_c (last half) "
           f"{np.mean(out['q_c'][len(out['q_c']) // 2:]) / 1e3:.1f} kPa", flush=True)
     return out
 
