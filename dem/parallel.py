@@ -261,6 +261,14 @@ def _exchange_rows(comm, rows, dest):
     return recv
 
 
+def _in_rank_order(parts) -> np.ndarray:
+    """parts[0] + parts[1] + ... (one part a rank, in rank order)."""
+    total = parts[0].copy()
+    for r in range(1, len(parts)):
+        total += parts[r]
+    return total
+
+
 def _rank_sum(comm, a) -> np.ndarray:
     """The sum of the float array ``a`` over the ranks, added in rank order: the same bits on
     every rank and every run (an Allreduce leaves the order to the MPI library)."""
@@ -269,10 +277,14 @@ def _rank_sum(comm, a) -> np.ndarray:
         return a.copy()
     parts = np.empty((comm.size,) + a.shape)
     comm.Allgather(a, parts)
-    total = parts[0].copy()
-    for r in range(1, comm.size):
-        total += parts[r]
-    return total
+    return _in_rank_order(parts)
+
+
+def _head_rows(nwalls: int) -> int:
+    """Header rows (9 columns) opening each halo message: the sender's largest coming
+    displacement (column 0 of every one), then its share of the walls' forces (3 a wall)
+    in columns 1-8."""
+    return max(1, -(-3 * nwalls // 8))
 
 
 def _agree(comm, error):
@@ -621,14 +633,16 @@ class DistributedSimulation:
         scount = np.bincount(self._send_dest, minlength=comm.size).astype(np.int64)
         rcount = np.empty_like(scount)
         comm.Alltoall(scount, rcount)
-        # each message to another rank opens with a header row (index -1): the sender's
-        # largest coming displacement, so one Alltoallv a step also decides collectively
-        # whether to decompose
+        # each message to another rank opens with header rows (index -1, `_head_rows`): the
+        # sender's largest coming displacement, so one Alltoallv a step also decides
+        # collectively whether to decompose, and its share of the walls' forces, so that
+        # a servo after the step's force pass needs no other collective call
         others = np.arange(comm.size) != comm.rank
+        heads = _head_rows(len(self.walls))
 
         def with_heads(idx, count):
             at = np.r_[0, np.cumsum(count)[:-1]][others]
-            return np.insert(idx, at, -1), count + others
+            return np.insert(idx, np.repeat(at, heads), -1), count + heads * others
 
         send, scount = with_heads(where[self._send_own], scount)
         recv, rcount = with_heads(where[len(own):], rcount)
@@ -673,6 +687,8 @@ class DistributedSimulation:
         self._plan = (send, recv, _spec(np.zeros((len(send), 9)), scount),
                       _spec(np.empty((len(recv), 9)), rcount), scount, rcount)
         self._heads, self._sheads = np.flatnonzero(recv < 0), np.flatnonzero(send < 0)
+        # (from the plan: a state written with fewer header rows sends no wall shares)
+        self._nhead = len(self._heads) // max(self.comm.size - 1, 1)
         # the buffer row each local row sent is predicted into, and the rows of a particle
         # sent to more than one rank: copies of its first (dst, src)
         sent = np.flatnonzero(send >= 0)
@@ -702,9 +718,11 @@ class DistributedSimulation:
         """Collective, once per step: True if the drift after ``kicks`` coming half-kicks
         could carry an owned particle more than halo_skin / 2 from where the halos were
         made (then decompose first); else the owners' x, v, omega after those half-kicks
-        and the drift are now in their halo copies (GHOST: kept through the local step)."""
+        and the drift are now in their halo copies (GHOST: kept through the local step).
+        Either way the walls' forces of the last force pass are summed (`wall_forces`)."""
         send, recv, sspec, rspec, _, _ = self._plan
         s, d2 = self.local, 0.0
+        share = self._pack_wall_share(sspec[0])
         if s is not None:
             p = s.p
             d2 = _predict(p.x, p.v, p.omega, p.force, p.torque, p.mass, p.inertia, p.kind,
@@ -716,11 +734,28 @@ class DistributedSimulation:
         sspec[0][self._sheads, 0] = d2
         self.comm.Alltoallv(sspec, rspec)
         d2 = self._d2 = max(d2, rspec[0][self._heads, 0].max(initial=0.0))
+        if share is not None:
+            got = rspec[0][self._heads, 1:].reshape(self.comm.size - 1, -1)[:, :len(share)]
+            parts = np.insert(got, self.comm.rank, share, axis=0)  # in rank order
+            self._wall_total = _in_rank_order(parts).reshape(-1, 3)
         if d2 > (0.5 * self.halo_skin * (1.0 - 1e-9)) ** 2:  # (rounding of the estimate)
             return True
         if s is not None:
             _unpack(recv, rspec[0], s.p.x, s.p.v, s.p.omega)
         return False
+
+    def _pack_wall_share(self, buf):
+        """This rank's share of the walls' forces (3 nw,) into the header rows of the send
+        buffer ``buf``; returns it (None: no walls, or no room in a restored plan)."""
+        nw = len(self.walls)
+        if nw == 0 or 8 * self._nhead < 3 * nw:
+            return None
+        share = np.zeros(3 * nw) if self.local is None else \
+            self.local.wall_resultants()[:, :3].ravel()
+        block = np.zeros(8 * self._nhead)
+        block[:3 * nw] = share
+        buf[self._sheads, 1:] = np.tile(block.reshape(self._nhead, 8), (self.comm.size - 1, 1))
+        return share
 
     def _refresh_halos(self) -> None:
         """Collective, between step calls: the halo copies take their owners' state now.
@@ -840,13 +875,15 @@ class DistributedSimulation:
         local call after this step (the next drift could carry a particle beyond the halo);
         else the halo copies as the next step's drift will make them. The last step of a
         call does neither: the next call decides and refreshes from the state it ends in.
-        The caller's hook runs first, at every force pass."""
-        stop = self._after_pass()
+        The caller's hook runs then, at every force pass (the exchange has summed the
+        walls' forces; after the last step `wall_forces` sums them)."""
+        self._wall_total = None
         self._left -= 1
-        if self._left == 0 or stop:
-            return stop
-        if self._exchange(2):
-            return True
+        last = self._left == 0
+        stale = not last and self._exchange(2)
+        stop = self._call_hook()
+        if last or stale or stop:
+            return stale or stop
         if not self._relisted and self._d2 > (0.5 * self.skin) ** 2:
             # the local lists would soon rebuild, rank by rank: all of them now instead
             # (once between decompositions: then the displacements from the lists' build
@@ -856,9 +893,13 @@ class DistributedSimulation:
         return False
 
     def _after_pass(self) -> bool:
-        """After each force pass (collective): the walls' summed forces are stale; the
-        caller's hook, if any (True: it ends the `step` call after this step)."""
+        """One rank's `Simulation.step` hook: the walls' forces are new; the caller's hook."""
         self._wall_total = None
+        return self._call_hook()
+
+    def _call_hook(self) -> bool:
+        """The caller's hook, if any (collective; True: it ends the `step` call after this
+        step)."""
         if self._hook is None:
             return False
         self._stop = bool(self._hook())
