@@ -81,8 +81,8 @@ def consolidate(sim, prm, log=print, controllers=(), height: float | None = None
     ``controllers``) to ``prm.consolidation_tol`` (the walls or the ghosts hold the sides and
     the bottom). ``height`` [m] of the specimen and its number of ``grains`` (for the log)
     default to the FREE particles' extent plus a diameter and their count (a `dem.
-    DistributedSimulation`, whose particles no rank holds, is given them). Returns relax's
-    record with the wall time."""
+    DistributedSimulation`, whose particles no single rank holds, is given them). Returns
+    relax's record with the wall time."""
     from dem import relax
 
     t0 = time.perf_counter()
