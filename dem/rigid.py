@@ -1,7 +1,7 @@
 """Rigid bodies from triangulated surfaces (gmsh/meshio), as clumps of GHOST spheres.
 
 The surface is covered by spheres of radius ``r_s`` whose centres sit ``r_s`` inside it
-(along the outward vertex normals), spaced at most ``r_s`` apart, so the clump's envelope
+(at least ``r_s`` from every triangle), spaced at most ``r_s`` apart, so the clump's envelope
 is the surface up to a roughness of ~``r_s``/4; the grains meet it through the engine's own
 contact laws and tangential history. The body moves with a prescribed rigid velocity
 (written into the GHOST particles each step) and reports the resultant force and torque
@@ -30,10 +30,42 @@ def read_surface(path):
     return np.asarray(mesh.points, float), np.vstack(tris).astype(np.int64)
 
 
+def _closest_on_triangles(p, a, b, c):
+    """Closest points (m, 3) of triangles (a, b, c) (m, 3 each) to points p (m, 3), row by
+    row (Ericson, Real-Time Collision Detection, 5.1.5: the Voronoi region of a vertex, an
+    edge or the face)."""
+    dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
+    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
+    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = 1.0 / (va + vb + vc)
+        q = a + ab * (vb * denom)[:, None] + ac * (vc * denom)[:, None]
+        # the regions in reverse order of Ericson's tests, so that the first that holds wins
+        bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        q[bc] = (b + (c - b) * w[:, None])[bc]
+        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        q[on_ac] = (a + ac * (d2 / (d2 - d6))[:, None])[on_ac]
+        q[(d6 >= 0) & (d5 <= d6)] = c[(d6 >= 0) & (d5 <= d6)]
+        on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        q[on_ab] = (a + ab * (d1 / (d1 - d3))[:, None])[on_ab]
+    q[(d3 >= 0) & (d4 <= d3)] = b[(d3 >= 0) & (d4 <= d3)]
+    q[(d1 <= 0) & (d2 <= 0)] = a[(d1 <= 0) & (d2 <= 0)]
+    return q
+
+
 def sample_surface(points, triangles, r_s: float):
     """Centres (k, 3) covering the closed surface ``(points, triangles)`` at spacing <= r_s,
-    moved r_s inward. The body must be convex (cones, piles, plates): normals are made to
-    point away from its centroid and centres are kept r_s behind every face plane."""
+    ``r_s`` inside it: each at least ``r_s`` from every triangle and as close to ``r_s`` from
+    the nearest as the surface allows, so the clump's envelope is the surface (edges rounded
+    inward). Normals are made to point away from the body's centroid, so the body must be
+    star-shaped about it (cones, piles, plates). The distance is to the triangles near each
+    centre, not to their planes: an unstructured triangulation of a curved surface is not
+    the convex hull of its vertices, and a face plane extended along a long shaft cuts it
+    (that put a cone penetrometer's clump 1.5 r_s deep inside its surface)."""
+    from scipy.spatial import cKDTree
+
     if not r_s > 0:
         raise ValueError(f"r_s (clump sphere radius) must be > 0, got {r_s!r}")
     P, T = np.asarray(points, float), np.asarray(triangles, np.int64)
@@ -53,16 +85,30 @@ def sample_surface(points, triangles, r_s: float):
         pts = a[i] + u[:, None] * (b[i] - a[i]) + v[:, None] * (c[i] - a[i])
         centres.append(pts - r_s * normal[i])
     x = np.vstack(centres)
-    # convex body: keep every centre at least r_s behind every face plane, so that no sphere
-    # pokes out at an edge or corner (the envelope rounds edges inward, not outward)
-    offsets = np.einsum("ij,ij->i", normal, a)
-    for _ in range(3):
-        d = x @ normal.T - offsets[None, :] + r_s          # > 0: too close to / outside a face
-        worst = np.argmax(d, axis=1)
-        bad = d[np.arange(len(x)), worst] > 1e-12 * r_s
-        if not bad.any():
+    # push every centre off the triangles it comes closer to than r_s (at edges and corners,
+    # and where neighbouring faces fold inward), along the line from the nearest point
+    mid = (a + b + c) / 3
+    reach = r_s + float(np.max(np.linalg.norm(np.stack([a, b, c]) - mid[None], axis=2)))
+    tree = cKDTree(mid)
+    for _ in range(20):
+        near = tree.query_ball_point(x, reach)
+        rows = np.repeat(np.arange(len(x)), [len(n) for n in near])
+        tris = np.concatenate([np.asarray(n, np.int64) for n in near])
+        q = _closest_on_triangles(x[rows], a[tris], b[tris], c[tris])
+        dist = np.linalg.norm(x[rows] - q, axis=1)
+        order = np.lexsort((dist, rows))
+        first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+        who, d, q, t = rows[first], dist[first], q[first], tris[first]
+        short = d < r_s * (1 - 1e-9)
+        if not short.any():
             break
-        x[bad] -= d[bad, worst[bad], None] * normal[worst[bad]]
+        away = (x[who] - q) / np.maximum(d, 1e-300)[:, None]
+        # a centre on a face or outside it (an edge's sample pushed off by its own face's
+        # normal past the next face): r_s behind the nearest point along that face's normal
+        out = np.einsum("ij,ij->i", away, normal[t]) > -1e-9
+        away[out] = -normal[t[out]]
+        d = np.where(out, 0.0, d)
+        x[who[short]] = q[short] + r_s * away[short]
     # merge duplicates on shared edges (grid to a tenth of the spacing)
     _, first = np.unique(np.round(x / (0.1 * r_s)).astype(np.int64), axis=0, return_index=True)
     return x[np.sort(first)]

@@ -21,6 +21,38 @@ def test_clump_covers_the_surface():
     assert np.all((x[:, 2] >= 0.9 * r_s) & (x[:, 2] <= 0.02 - 0.9 * r_s))
 
 
+def test_clump_envelope_is_the_surface_of_a_long_cone_penetrometer():
+    """An unstructured triangulation of a shaft is not the convex hull of its vertices: a
+    face plane extended along the shaft cuts it, and keeping centres behind every face plane
+    put the clump up to 1.5 r_s inside (a 6 mm cone's envelope 5.2 mm wide, its q_c half
+    LIGGGHTS' on a mesh cone). The clump's spheres touch the surface from inside, all along."""
+    from meshes.penetration import cone_penetrometer
+
+    R, r_s = 0.006, 0.00075
+    pts, tri = cone_penetrometer(3, radius=R, apex_deg=60.0, shaft_length=8 * R, h=R / 4)
+    x = sample_surface(pts, tri, r_s)
+    z_base = R / np.tan(np.radians(30.0))
+    top = float(np.max(pts[:, 2]))
+    rho = np.hypot(x[:, 0], x[:, 1])
+    shaft = (x[:, 2] > z_base + 2 * r_s) & (x[:, 2] < top - 2 * r_s)
+    # inside: no sphere beyond the surface
+    assert rho.max() <= R - r_s + 1e-9
+    # and touching it: the outer centres of the shaft sit r_s inside the facets, which sag
+    # up to R (1 - cos(h / 2R)) ~ 0.014 R inside the circle
+    outer = rho[shaft] > 0.5 * R
+    assert np.all(rho[shaft][outer] > R - r_s - 0.02 * R)
+    # every point of the cone face and of the shaft (away from apex and rims) has a sphere
+    # surface within a quarter r_s
+    rng = np.random.default_rng(3)
+    t, th = 0.2 + 0.75 * rng.random(500), 2 * np.pi * rng.random(500)
+    face = np.column_stack([t * R * np.cos(th), t * R * np.sin(th), t * z_base])
+    zs = z_base + 2 * r_s + (top - z_base - 4 * r_s) * rng.random(500)
+    side = np.column_stack([R * np.cos(th), R * np.sin(th), zs])
+    for probe in (face, side):
+        gap = np.min(np.linalg.norm(probe[:, None, :] - x[None, :, :], axis=2), axis=1) - r_s
+        assert gap.max() < 0.25 * r_s
+
+
 def test_plate_carries_the_weight_of_the_grains():
     """Frictionless grains at rest in the dimples of a plate (a closed thin box, 12 triangles):
     the plate's resultant equals their weight, its torque the moment of their weights."""
