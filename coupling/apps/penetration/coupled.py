@@ -150,8 +150,8 @@ def _cone_and_material(prm, top):
     shaft = prm.depth + 3 * prm.cone_radius
     if prm.dim == 2:
         pen, r_pen, on_cone = cone_clump(prm.cone_radius, prm.apex_deg, shaft, prm.radius)
-        tip0 = float(top + prm.radius + r_pen + 0.1 * prm.radius)
-        pen[:, 1] += tip0 + r_pen
+        # the clump's envelope r_pen + 0.1 grain radius above the grains' tops
+        pen[:, 1] += float(top + 1.1 * prm.radius + r_pen - (pen[:, 1].min() - r_pen))
     else:
         pen, r_pen, on_cone = penetrator_clump(prm, shaft)
         # the clump's envelope (its lowest sphere's bottom) 0.1 grain radius above the grains
