@@ -555,7 +555,8 @@ def plot(results: dict) -> None:
         if r.get("liggghts"):
             ax.axvline(r["liggghts"]["total_s_mean"], color="C3", ls=":", label=f"{bc}: LIGGGHTS run time")
     ax.set_xscale("log")
-    ax.set_xlabel("run time per packing [s] (set-up + push, one core)")
+    ax.set_xlabel("run time per packing [s] (set-up + push, wall; a coupled case on one core, the reference "
+                  "on its ranks)")
     ax.set_ylabel("relative RMS error of q_c against the full-DEM average")
     worst = max([c["q_c_rms_error"] for r in results["cases"].values() for c in r["coupled"]
                  if "q_c_rms_error" in c] + [0.0])
