@@ -107,7 +107,6 @@ def sample_surface(points, triangles, r_s: float):
         # normal past the next face): r_s behind the nearest point along that face's normal
         out = np.einsum("ij,ij->i", away, normal[t]) > -1e-9
         away[out] = -normal[t[out]]
-        d = np.where(out, 0.0, d)
         x[who[short]] = q[short] + r_s * away[short]
     # merge duplicates on shared edges (grid to a tenth of the spacing)
     _, first = np.unique(np.round(x / (0.1 * r_s)).astype(np.int64), axis=0, return_index=True)
