@@ -259,9 +259,12 @@ def test_patch_serial_equals_parallel(accelerator):
 @pytest.mark.mpi
 def test_iqn_ils_hard_exchange_serial_equals_parallel():
     """The no-handshake exchange (~80 pairs, a nearly singular least-squares problem) under
-    IQN-ILS: 2 ranks give the serial answer to 1e-10; the count may differ by one (the
-    reductions' round-off moves the last residual across the tolerance: measured 78 on 2 ranks,
-    79 serial)."""
+    IQN-ILS: 2 ranks give the serial answer to within the stopping tolerance; the count may
+    differ by one (the reductions' round-off moves the last residual across the tolerance:
+    measured 78 on 2 ranks, 79 serial). Each run stops somewhere inside the tolerance ball
+    (residual < 1e-10), so the two answers differ by up to the tolerance times the exchange's
+    amplification, not by round-off: measured 1e-11 to 6e-11 of the largest displacement here,
+    above 1e-10 on a CI machine once. Asserted: 1e-9, ten times the tolerance."""
     results = []
     for comm in (MPI.COMM_WORLD, MPI.COMM_SELF):
         coupling = coupled_patch(comm, n=20, handshake=0.0, prefix=f"nohspar{comm.size}_",
@@ -270,7 +273,7 @@ def test_iqn_ils_hard_exchange_serial_equals_parallel():
         results.append((coupling.solve(), coupling.u.copy()))
     print("hard exchange, iterations on", MPI.COMM_WORLD.size, "ranks and 1:", results[0][0], results[1][0])
     assert abs(results[0][0] - results[1][0]) <= 1
-    assert np.allclose(results[0][1], results[1][1], rtol=0, atol=1e-10 * np.abs(results[1][1]).max())
+    assert np.allclose(results[0][1], results[1][1], rtol=0, atol=1e-9 * np.abs(results[1][1]).max())
 
 
 def test_patch_3d_cubic_lattice():
