@@ -53,6 +53,18 @@ def test_clump_envelope_is_the_surface_of_a_long_cone_penetrometer():
         assert gap.max() < 0.25 * r_s
 
 
+def test_body_thinner_than_the_clump_spheres_is_refused():
+    """A disk 3.5 mm thick cannot hold spheres of 2 mm radius inside it: the sampling used to
+    give up after its passes and return centres short of the faces; now it names r_s."""
+    pts, tri = flat_pile(3, radius=0.01, length=0.0035, h=0.002)
+    with pytest.raises(ValueError, match=r"r_s = 0.002 \(clump sphere radius\) is too large"):
+        sample_surface(pts, tri, 0.002)
+    pts, tri = flat_pile(3, radius=0.01, length=0.0045, h=0.002)
+    x = sample_surface(pts, tri, 0.002)  # 0.5 mm to spare: every centre r_s inside
+    assert np.all((x[:, 2] >= 0.002 - 1e-9) & (x[:, 2] <= 0.0025 + 1e-9))
+    assert np.all(np.hypot(x[:, 0], x[:, 1]) <= 0.008 + 1e-9)
+
+
 def test_plate_carries_the_weight_of_the_grains():
     """Frictionless grains at rest in the dimples of a plate (a closed thin box, 12 triangles):
     the plate's resultant equals their weight, its torque the moment of their weights."""
