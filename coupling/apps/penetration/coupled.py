@@ -75,11 +75,12 @@ from coupling.apps.penetration.chamber import (
 )
 from coupling.apps.penetration.parameters import VERTICAL, PenetrationParameters
 from coupling.apps.penetration.penetrators import cone_clump, cone_parts, cone_record, penetrator_clump, tip_height
+from coupling.calibration import lattice_estimate, voigt_estimate
 from coupling.interface import IQNILS, CouplingInterface, IQNOptions
 from coupling.regions import Box, CouplingRegions
 from coupling.substep import GhostMotion, sub_cycle
 from dem import GHOST, ContactMaterial, Particles, Simulation
-from dem.bonded import hexagonal_lattice, hexagonal_lattice_micropolar
+from dem.bonded import hexagonal_lattice
 from dem.timestep import DEFAULT_SAFETY, rayleigh_dt
 from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
@@ -558,9 +559,8 @@ class CoupledPenetration:
         i, j = sim.contacts()
         grains = (i < self.n_grains) & (j < self.n_grains)
         z = 2 * int(grains.sum()) / max(self.n_grains, 1)
-        scale = z / 6.0
-        kn, kt = prm.kn, prm.kt_over_kn * prm.kn
-        c = hexagonal_lattice_micropolar(scale * kn, scale * kt, 0.1 * scale * kt * (2 * prm.radius) ** 2)
+        c = lattice_estimate({"coordination": z, "kn": prm.kn, "kt": prm.kt_over_kn * prm.kn}, prm.radius)
+        c.pop("name")
         r = sim.p.radius[: self.n_grains]
         lo, hi = self.x_ref[:, :2].min(0), self.x_ref[:, :2].max(0)
         rho = prm.density * np.pi * np.sum(r**2) / np.prod(hi - lo)
@@ -635,11 +635,10 @@ class CoupledPenetration:
                              f"{z:.2f} inside the window: not a load-bearing packing to take the "
                              "continuum's constants from; settle longer")
         phi = float(np.sum(4 / 3 * np.pi * r[inner] ** 3) / volume)
-        A = 3 * phi * z / (2 * np.pi * float(np.mean(r)))
-        kr = 0.1 * kt * d**2
-        c = dict(lam=A * (kn - kt) / 15, mu=A * (kn - kt) / 15, kappa=A * kt / 3, gamma=A * kr / 3)
         stats = {"contacts": int(len(i)), "coordination": z, "density": prm.density * phi,
                  "solid_fraction": phi, "kn": kn, "kt": kt}
+        c = voigt_estimate(stats, float(np.mean(r)))
+        c.pop("name")
         if prm.continuum_constants == "calibrated":
             c, stats["calibration"] = self._calibrated_constants()
         return MicropolarMaterial(**c, rho=prm.density * phi, j=0.4 * prm.radius**2), stats
