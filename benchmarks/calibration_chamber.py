@@ -156,7 +156,8 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
     return dict(chamber_width=width, chamber_depth=args.depth_ratio * width, radius=r, cone_radius=cone_radius,
                 velocity=args.velocity, depth=depth, vertical_stress=args.stress,
                 lateral=LATERAL[bc], consolidation_tol=1e-2, seed=seed, substeps=50,
-                interface=args.interface, relaxation=args.relaxation,
+                # the full DEM has no exchange: its record serves every --interface / --relaxation
+                interface=args.interface if window else "loose", relaxation=args.relaxation if window else 0.1,
                 window_half_width=window or (0.03 if args.dim == 2 else 0.02), window_depth=window_depth,
                 element_size_window=(2.5 if args.dim == 2 else 2.0) * 2 * r, element_size_far=width / 8) | grains | (
                     {} if continuum == "micropolar" else
@@ -320,8 +321,11 @@ def seed_reference(bc: str, seeds: list[int]) -> None:
     if len(runs) < len(seeds):
         raise SystemExit(f"--reference {args.reference}: {len(runs)} {bc} packings, {len(seeds)} asked")
     for s, run in zip(seeds, runs, strict=False):
+        case = {"parameters": parameters(bc, s, None), "window": None}
         path = args.work / f"{bc}_full_s{s}.json"
-        path.write_text(json.dumps({"parameters": parameters(bc, s, None), "window": None}))
+        if args.reference_ranks > 1:  # named and recorded as run_case names a distributed reference
+            path, case["ranks"] = args.work / f"{bc}_full_s{s}_n{args.reference_ranks}.json", args.reference_ranks
+        path.write_text(json.dumps(case))
         path.with_suffix(".out.json").write_text(json.dumps(run))
     args.reuse = True
 
