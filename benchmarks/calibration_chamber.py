@@ -238,6 +238,13 @@ def worker(path: Path) -> None:
         out["split_s"] = {k: float(np.sum([t.get(k, 0.0) for t in model.step_timings]))
                           for k in model.step_timings[0]}
         out["calibration"] = model.contact_stats.get("calibration")
+        state = model.problem.state
+        if state and "equivalent_plastic_strain" in state.committed:
+            # how much of the continuum yielded by the end (quadrature points of this rank)
+            eq = state.owned("equivalent_plastic_strain")
+            out["plastic"] = {"yielded_fraction": float(np.mean(eq > 0)),
+                              "fraction_above_1e-3": float(np.mean(eq > 1e-3)),
+                              "max_equivalent_plastic_strain": float(eq.max())}
     if case.get("ranks", 1) > 1:
         out["ranks"] = comm.size
     path.with_suffix(".out.json").write_text(json.dumps(out))
@@ -257,7 +264,8 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     """One packing of one case in its own process: full DEM of the chamber (window None),
     full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
     tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal") + (
-        f"_h{hardening:g}" if hardening else "")
+        f"_h{hardening:g}" if hardening else "") + ("" if args.interface == "loose" else "_iqn") + (
+        "" if args.relaxation == 0.1 else f"_rel{args.relaxation:g}")
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
         case = {"parameters": box_parameters(bc, seed, box), "window": None}
