@@ -82,6 +82,10 @@ parser.add_argument("--interface", default="loose", choices=["loose", "iqn-ils"]
                     help="the coupled cases' exchange (coupling.interface)")
 parser.add_argument("--relaxation", type=float, default=0.1,
                     help="coupling.relaxation (0.3 diverged in a short chamber at 1.3 cone diameters)")
+parser.add_argument("--substeps", type=int, default=50,
+                    help="the coupled cases' DEM steps per FE step (coupling.substeps): the loose "
+                         "exchange's prescribed displacements trail the grains by about "
+                         "substeps / relaxation DEM steps")
 parser.add_argument("--continuum", nargs="+", default=None,
                     choices=["micropolar", "micropolar_drucker_prager"],
                     help="the coupled cases' continuum models (each with every window)")
@@ -155,7 +159,8 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
     grains = dict(kn=5e7, dt_factor=3.0) if args.dim == 2 else dict(dim=3, dt_factor=1.0)
     return dict(chamber_width=width, chamber_depth=args.depth_ratio * width, radius=r, cone_radius=cone_radius,
                 velocity=args.velocity, depth=depth, vertical_stress=args.stress,
-                lateral=LATERAL[bc], consolidation_tol=1e-2, seed=seed, substeps=50,
+                lateral=LATERAL[bc], consolidation_tol=1e-2, seed=seed,
+                substeps=args.substeps if window else 50,
                 # the full DEM has no exchange: its record serves every --interface / --relaxation
                 interface=args.interface if window else "loose", relaxation=args.relaxation if window else 0.1,
                 window_half_width=window or (0.03 if args.dim == 2 else 0.02), window_depth=window_depth,
@@ -265,7 +270,8 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
     tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal") + (
         f"_h{hardening:g}" if hardening else "") + ("" if args.interface == "loose" else "_iqn") + (
-        "" if args.relaxation == 0.1 else f"_rel{args.relaxation:g}")
+        "" if args.relaxation == 0.1 else f"_rel{args.relaxation:g}") + (
+        "" if args.substeps == 50 else f"_sub{args.substeps}")
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
         case = {"parameters": box_parameters(bc, seed, box), "window": None}
