@@ -86,6 +86,9 @@ parser.add_argument("--substeps", type=int, default=50,
                     help="the coupled cases' DEM steps per FE step (coupling.substeps): the loose "
                          "exchange's prescribed displacements trail the grains by about "
                          "substeps / relaxation DEM steps")
+parser.add_argument("--handshake", type=float, default=2.0,
+                    help="the coupled cases' free FE layer inside the window [elements] "
+                         "(window.handshake): the FE nodes deeper inside are prescribed from the grains")
 parser.add_argument("--continuum", nargs="+", default=None,
                     choices=["micropolar", "micropolar_drucker_prager"],
                     help="the coupled cases' continuum models (each with every window)")
@@ -168,7 +171,8 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
                     {} if continuum == "micropolar" else
                     dict(continuum=continuum, continuum_friction_deg=args.friction_deg)) | (
                     {} if constants == "lattice" else dict(continuum_constants=constants)) | (
-                    dict(continuum_hardening=hardening) if hardening else {})
+                    dict(continuum_hardening=hardening) if hardening else {}) | (
+                    dict(handshake=args.handshake) if window and args.handshake != 2.0 else {})
 
 
 def box_parameters(bc: str, seed: int, window: float) -> dict:
@@ -271,7 +275,8 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal") + (
         f"_h{hardening:g}" if hardening else "") + ("" if args.interface == "loose" else "_iqn") + (
         "" if args.relaxation == 0.1 else f"_rel{args.relaxation:g}") + (
-        "" if args.substeps == 50 else f"_sub{args.substeps}")
+        "" if args.substeps == 50 else f"_sub{args.substeps}") + (
+        "" if args.handshake == 2.0 else f"_hs{args.handshake:g}")
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
         case = {"parameters": box_parameters(bc, seed, box), "window": None}
