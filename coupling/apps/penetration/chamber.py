@@ -176,6 +176,16 @@ def smooth_walls(material) -> list:
     return [material, replace(material, friction=0.0)]
 
 
+def box_width(x: np.ndarray, radius: np.ndarray, dim: int) -> float:
+    """The loaded width [m] between the side walls of :func:`box_around` (3D: the side of the
+    square of the same area): what a stress on the top of the lattice ``x`` acts over. The
+    lattice's own extent is a diameter less, which loaded a window 9 % below the vertical
+    stress (3D, 2.5 cm window: 88.6 kPa inside for 100 kPa asked)."""
+    r = float(radius.max())
+    spans = [float(x[:, k].max() - x[:, k].min()) + 2 * r for k in range(dim - 1)]
+    return float(np.prod(spans) ** (1.0 / (dim - 1)))
+
+
 def box_around(x: np.ndarray, radius: np.ndarray, dim: int) -> list:
     """Smooth walls (material 1) touching the lattice ``x`` (n, 3) on its sides and bottom."""
     from dem import PlaneWall

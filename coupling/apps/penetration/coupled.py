@@ -65,6 +65,7 @@ import numpy as np
 from coupling.apps.penetration.chamber import (
     apply_loads,
     box_around,
+    box_width,
     consolidate,
     consolidate_window,
     plate_servo,
@@ -414,8 +415,8 @@ class CoupledPenetration:
         if checkpoint is None:
             t0 = time.perf_counter()
             if prm.vertical_stress > 0:
-                servo = consolidate_window(self.sim, prm, n, np.flatnonzero(self.kinds == 1), 2 * (a + band), log,
-                                           plate=plate)
+                servo = consolidate_window(self.sim, prm, n, np.flatnonzero(self.kinds == 1),
+                                           box_width(self.x_grains, radius, dim), log, plate=plate)
                 self.servos = [] if servo is None else [servo]
             else:
                 _settle(self.sim, prm, n, np.flatnonzero(self.kinds == 0), 2 * (a + band), log)
@@ -436,7 +437,7 @@ class CoupledPenetration:
         else:
             if prm.vertical_stress > 0 and plate is None:
                 apply_loads(self.sim, surcharge(self.sim.p.x[:n], np.flatnonzero(self.kinds == 0), prm,
-                                                2 * (a + band)))
+                                                box_width(self.x_grains, radius, dim)))
             saved = self._read_checkpoint(Path(checkpoint))
             if plate is not None:
                 self.servos = [plate_servo(prm, plate, saved["state"]["plate_area"])]
