@@ -472,7 +472,10 @@ def compare(bc: str) -> dict:
                                                      embedded, scale, len(full)),
                 "q_c_mean": q.tolist(),
                 "f_s_mean": np.mean([smoothed(r, "f_s", grid) for r in runs], axis=0).tolist(),
-                "split_s_mean": {k: float(np.mean([r["split_s"][k] for r in runs])) for k in runs[0]["split_s"]},
+                # a loose run re-run iterated has other phases (interface_iterations): a phase
+                # a run did not have counts 0 in it
+                "split_s_mean": {k: float(np.mean([r["split_s"].get(k, 0.0) for r in runs]))
+                                 for k in dict.fromkeys(k for r in runs for k in r["split_s"])},
                 "calibration": runs[0].get("calibration"),
                 "stopped_packings": len(tried) - len(runs),
                 "runs": tried}
