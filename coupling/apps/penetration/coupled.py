@@ -542,14 +542,17 @@ class CoupledPenetration:
         top = float(x[:n, ax].max())
         inner = np.zeros(sim.p.n, bool)
         inner[:n] = ((self.kinds == 0) & (np.abs(x[:n, :dim - 1]).max(axis=1) < prm.window_half_width - d)
-                     & (x[:n, ax] < top - 2 * d) & (x[:n, ax] > top - prm.window_depth + d))
+                     & (x[:n, ax] < top - 2 * d) & (x[:n, ax] > -prm.window_depth + d))
         if (inner[i] & inner[j]).sum() < 20:
             raise ValueError("the window holds fewer than 20 contacts between free grains away from "
                              "its edges: too small to take the continuum's initial stress from")
         # a contact with one end inside counts half (Love-Weber over the inner region)
         weight = 0.5 * (inner[i].astype(float) + inner[j])
         sigma = np.einsum("k,ka,kb->ab", weight, f, b)
-        volume = (2 * (prm.window_half_width - d)) ** (dim - 1) * (prm.window_depth - 3 * d)
+        # the window's base is where its lattice was built (the ghosts below it held), its top
+        # where the grains settled: a consolidated 3D window stands 16 mm lower, and the
+        # height window_depth - 3 d put its vertical stress at 85 kPa for 108-118 kPa
+        volume = (2 * (prm.window_half_width - d)) ** (dim - 1) * (top + prm.window_depth - 3 * d)
         return tuple(float(sigma[k, k] / volume) for k in range(dim))
 
     def _continuum_material(self):
