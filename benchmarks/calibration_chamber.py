@@ -163,16 +163,25 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
     return dict(chamber_width=width, chamber_depth=args.depth_ratio * width, radius=r, cone_radius=cone_radius,
                 velocity=args.velocity, depth=depth, vertical_stress=args.stress,
                 lateral=LATERAL[bc], consolidation_tol=1e-2, seed=seed,
-                substeps=args.substeps if window else 50,
-                # the full DEM has no exchange: its record serves every --interface / --relaxation
-                interface=args.interface if window else "loose", relaxation=args.relaxation if window else 0.1,
                 window_half_width=window or (0.03 if args.dim == 2 else 0.02), window_depth=window_depth,
                 element_size_window=(2.5 if args.dim == 2 else 2.0) * 2 * r, element_size_far=width / 8) | grains | (
                     {} if continuum == "micropolar" else
                     dict(continuum=continuum, continuum_friction_deg=args.friction_deg)) | (
                     {} if constants == "lattice" else dict(continuum_constants=constants)) | (
-                    dict(continuum_hardening=hardening) if hardening else {}) | (
-                    dict(handshake=args.handshake) if window and args.handshake != 2.0 else {})
+                    dict(continuum_hardening=hardening) if hardening else {}) | {
+                    # the handshake named only off its default (the records before it had none)
+                    k: v for k, v in exchange(window).items() if k != "handshake" or v != parser.get_default(k)}
+
+
+# the coupled cases' exchange settings, and how a record's name marks one off its default
+EXCHANGE_TAGS = {"interface": lambda v: "_iqn", "relaxation": "_rel{:g}".format,
+                 "substeps": "_sub{}".format, "handshake": "_hs{:g}".format}
+
+
+def exchange(window: float | None) -> dict:
+    """The exchange settings of a case: the command line's for a coupled case, the defaults for
+    the full DEM (which has no exchange: its record serves every choice)."""
+    return {k: getattr(args, k) if window else parser.get_default(k) for k in EXCHANGE_TAGS}
 
 
 def box_parameters(bc: str, seed: int, window: float) -> dict:
@@ -273,10 +282,8 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     """One packing of one case in its own process: full DEM of the chamber (window None),
     full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
     tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal") + (
-        f"_h{hardening:g}" if hardening else "") + ("" if args.interface == "loose" else "_iqn") + (
-        "" if args.relaxation == 0.1 else f"_rel{args.relaxation:g}") + (
-        "" if args.substeps == 50 else f"_sub{args.substeps}") + (
-        "" if args.handshake == 2.0 else f"_hs{args.handshake:g}")
+        f"_h{hardening:g}" if hardening else "") + "".join(
+        EXCHANGE_TAGS[k](v) for k, v in exchange(window).items() if v != parser.get_default(k))
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
         case = {"parameters": box_parameters(bc, seed, box), "window": None}

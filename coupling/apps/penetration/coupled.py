@@ -551,7 +551,7 @@ class CoupledPenetration:
         sigma = np.einsum("k,ka,kb->ab", weight, f, b)
         # the window's base is where its lattice was built (the ghosts below it held), its top
         # where the grains settled: a consolidated 3D window stands 16 mm lower, and the
-        # height window_depth - 3 d put its vertical stress at 85 kPa for 108-118 kPa
+        # height window_depth - 3 d put its vertical stress at 85 kPa for 104
         volume = (2 * (prm.window_half_width - d)) ** (dim - 1) * (top + prm.window_depth - 3 * d)
         return tuple(float(sigma[k, k] / volume) for k in range(dim))
 
