@@ -80,8 +80,8 @@ class GeneralizedAlpha:
         w_mid = (1 - p.alpha_f) * w + p.alpha_f * self.w_old
         a_mid = (1 - p.alpha_m) * a_new + p.alpha_m * self.a
         dw = ufl.TestFunctions(V)
-        F = (model.inertia_work(problem.split(a_mid), dw)
-             + model.internal_work(problem.split(w_mid), dw, state)) * problem.dx
+        F = problem.weighted(model.inertia_work(problem.split(a_mid), dw)
+                             + model.internal_work(problem.split(w_mid), dw, state)) * problem.dx
         L = problem.external_work(dw)
         F = F - L if L != 0 else F
         # a linear model's Jacobian is the same at every step: factorise it once; a plastic
@@ -106,8 +106,9 @@ class GeneralizedAlpha:
         problem, model = self.problem, self.problem.model
         V = problem.V
         dw = ufl.TestFunctions(V)
-        lhs = model.inertia_work(ufl.TrialFunctions(V), dw) * problem.dx
-        rhs = -model.internal_work(problem.split(problem.w), dw, problem.state.committed) * problem.dx
+        lhs = problem.weighted(model.inertia_work(ufl.TrialFunctions(V), dw)) * problem.dx
+        rhs = -problem.weighted(model.internal_work(problem.split(problem.w), dw,
+                                                    problem.state.committed)) * problem.dx
         ext = problem.external_work(dw)
         if ext != 0:
             rhs = rhs + ext
@@ -225,8 +226,8 @@ class _AffineStep:
         model, V = problem.model, problem.V
         self.stepper, self.problem, self.ksp = stepper, problem, ksp
         trial, dw = ufl.TrialFunctions(V), ufl.TestFunctions(V)
-        m_ufl = model.inertia_work(trial, dw) * problem.dx
-        k_ufl = model.internal_work(trial, dw, problem.state.committed) * problem.dx
+        m_ufl = problem.weighted(model.inertia_work(trial, dw)) * problem.dx
+        k_ufl = problem.weighted(model.internal_work(trial, dw, problem.state.committed)) * problem.dx
         self._m, self._k = (fem.form(m_ufl, jit_options=problem.jit_options),
                             fem.form(k_ufl, jit_options=problem.jit_options))
         self._matrix_constants = list({id(x): x for x in (*m_ufl.constants(), *k_ufl.constants(),
@@ -248,14 +249,16 @@ class _AffineStep:
     def build(cls, stepper: GeneralizedAlpha, F, L):
         """The affine step, or None when the residual is not affine in w (then SNES) or the
         linear solver is not direct (an iterative KSP keeps the Newton control)."""
-        from ufl.algorithms import expand_derivatives
+        from ufl.algorithms import expand_derivatives, extract_coefficients
 
         problem = stepper.problem
         w = problem.w
         if not problem.model.linear or problem.state:
             return None
         J = expand_derivatives(ufl.derivative(F, w, ufl.TrialFunction(problem.V)))
-        if len(J.coefficients()) > 0:       # J depends on w (or on other functions)
+        # the partition weight is fixed once set (granfe.problem.ContinuumProblem.set_weight)
+        fixed = set() if problem.weight is None else set(extract_coefficients(ufl.as_ufl(problem.weight)))
+        if set(J.coefficients()) - fixed:   # J depends on w (or on other functions)
             return None
         if L != 0 and w in L.coefficients():
             return None

@@ -29,6 +29,7 @@ from dolfinx import mesh as _mesh
 from granfe.materials import MicropolarMaterial
 from granfe.models.base import ContinuumModel
 from granfe.models.micropolar import Micropolar
+from granfe.nodal import NodalLoad
 from granfe.solvers import (
     ITERATIVE,
     REDUNDANT,
@@ -134,6 +135,8 @@ class ContinuumProblem:
         self.bcs: list[fem.DirichletBC] = []
         self._surface: list[tuple[np.ndarray, str, object]] = []
         self._volume: list[tuple[str, object]] = []
+        self._nodal: list[NodalLoad] = []
+        self.weight = None
         self._snes = None
         self.last_good = self.w.x.array.copy()
 
@@ -283,6 +286,26 @@ class ContinuumProblem:
         """Surface couple [N/m] (scalar phi_z-couple in 2D, vector in 3D) on a boundary."""
         return self.surface_load(where, "phi", value)
 
+    def nodal_load(self, field: str = "u") -> NodalLoad:
+        """A load given node by node on a degree-1 field (:class:`granfe.nodal.NodalLoad`:
+        its ``set(F)`` takes nodal forces in V's dof layout, e.g. ``N^T f`` of point forces)."""
+        load = NodalLoad(self.V, self.fields, field, self.degree[self._field(field)])
+        self._nodal.append(load)
+        self._snes = None
+        return load
+
+    def set_weight(self, weight) -> None:
+        """Scale the material's internal and inertial work by ``weight`` (a UFL scalar, e.g. a
+        DG0 function): 1 where the continuum is the material, a small positive number where
+        another model carries it (the grains of a coupled window; seed 001's energy partition).
+        Set before the first solve: a linear dynamic step assembles its matrices once."""
+        self.weight = weight
+        self._snes = None
+
+    def weighted(self, integrand):
+        """``integrand`` times the partition weight (:meth:`set_weight`), if any."""
+        return integrand if self.weight is None else self.weight * integrand
+
     def body_force(self, value):
         """Body force per unit volume [N/m^3] (vector or UFL expression)."""
         return self.body_load("u", value)
@@ -324,6 +347,8 @@ class ContinuumProblem:
                 L += ufl.inner(value, dw[names.index(field)]) * ds(tags)
         for field, value in self._volume:
             L += ufl.inner(value, dw[names.index(field)]) * self.dx
+        for load in self._nodal:
+            L += load.work(dw)
         return L
 
     def split(self, expr) -> tuple:
@@ -334,7 +359,7 @@ class ContinuumProblem:
         """Static residual form ``internal - external`` for test functions of V."""
         w = self.w if w is None else w
         dw = ufl.TestFunctions(self.V)
-        F = self.model.internal_work(self.split(w), dw, self.state.committed) * self.dx
+        F = self.weighted(self.model.internal_work(self.split(w), dw, self.state.committed)) * self.dx
         L = self.external_work(dw)
         return F - L if L != 0 else F
 
