@@ -444,13 +444,18 @@ class Simulation:
             library call should not litter it; the error names the file).
         cell: a `dem.periodic.PeriodicCell` (then ``p.v`` are fluctuations about the
             cell's affine velocity field; no walls, ghosts or domain box).
+        prescribed_pairs: evaluate contacts between two particles that are not FREE (GHOST
+            or FIXED). False skips them: they move no particle, and the force on a GHOST row
+            is then what the FREE particles (and walls) exert on it, the reaction a
+            partitioned coupling hands its continuum.
     """
 
     def __init__(self, particles, materials, walls=(), gravity=(0.0, 0.0, 0.0), dt=None, *,
                  safety=None, force_dt=False, v_max=None, skin=None, domain=None,
                  allow_overlap=False, blowup_factor=10.0, check_every=100, state_path=None,
-                 cell=None):
+                 cell=None, prescribed_pairs=True):
         self.p = particles
+        self.prescribed_pairs = bool(prescribed_pairs)
         mats = [materials] if isinstance(materials, ContactMaterial) else list(materials)
         if particles.material.max(initial=0) >= len(mats):
             raise ValueError(f"particles.material refers to material "
@@ -590,8 +595,9 @@ class Simulation:
         books the ghosts' work over the new set of GHOST rows."""
         self._ghosts = self._ghost_index()
         self._at = self._positions()
-        if self.walls.free_only.any():
-            # a released grain meets the free_only walls its GHOST row was kept from
+        if self.walls.free_only.any() or not self.prescribed_pairs:
+            # a released grain meets the free_only walls (and the prescribed rows) its GHOST
+            # row was kept from
             self.rebuild_neighbours()
 
     @property
@@ -667,6 +673,9 @@ class Simulation:
         """Called after every neighbour build, before the force pass: drops the GHOST rows'
         candidates of ``free_only`` walls; a subclass may drop more (`dem.parallel` drops the
         halo copies' own contacts)."""
+        if not self.prescribed_pairs and len(nl.pi):
+            k = self.p.kind
+            nl.keep_pairs((k[nl.pi] == FREE) | (k[nl.pj] == FREE))
         w = self.walls
         if len(nl.wi) and w.free_only.any():
             nl.keep_walls(~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST)))

@@ -10,7 +10,7 @@ from dem.prescribed import Interpolated, Prescribed, Translated
 R = 1.0e-3
 
 
-def scene():
+def scene(**options):
     """2D: 12 x 8 frictional disks resting on a bottom row of GHOST disks (the band) and a
     GHOST 'cone' of 5 disks just above them; gravity; walls at the sides."""
     mat = dem.ContactMaterial(E=2e5, nu=0.25, law="linear", kn=2e5, kt=1e5, density=2650.0,
@@ -31,7 +31,7 @@ def scene():
     p = dem.Particles.spheres(x, radius, 2650.0, dim=2, kind=kind,
                               v=np.column_stack([rng.normal(0, 0.01, (n, 2)), np.zeros(n)]))
     walls = [dem.PlaneWall((-R, 0, 0), (1, 0, 0)), dem.PlaneWall((25 * R, 0, 0), (-1, 0, 0))]
-    sim = dem.Simulation(p, mat, walls, gravity=(0, -9.81, 0), allow_overlap=True)
+    sim = dem.Simulation(p, mat, walls, gravity=(0, -9.81, 0), allow_overlap=True, **options)
     return sim, band, cone_rows
 
 
@@ -117,3 +117,38 @@ def test_a_hook_that_changes_the_ghosts_is_refused():
 
     with pytest.raises(RuntimeError, match="the hook changed the set of GHOST rows"):
         sim.step(3, hook=release)
+
+
+def test_prescribed_pairs_skipped_leave_the_reaction_of_the_free_grains():
+    """``prescribed_pairs=False``: the FREE grains move to the same bits (contacts of two
+    prescribed rows move nobody), and a GHOST row's force is what the FREE grains exert on it:
+    over the band it balances the grains' weight on it (they rest on it) once they settle."""
+    runs = []
+    for pairs in (True, False):
+        sim, band, cone = scene(prescribed_pairs=pairs)
+        sim.step(400)
+        runs.append((sim, band, cone))
+    (full, band, cone), (skipped, _, _) = runs
+    free = full.p.kind == dem.FREE
+    assert np.array_equal(full.p.x[free], skipped.p.x[free])
+    assert np.array_equal(full.p.v[free], skipped.p.v[free])
+    # the cone's disks overlap each other (1 mm apart): with the pairs their forces include
+    # each other's pushes, without them nothing (no grain reaches the cone)
+    assert np.abs(full.p.force[cone]).max() > 0
+    assert np.all(skipped.p.force[cone] == 0.0)
+    # two overlapping ghosts under one grain pressed into both: each ghost feels the grain
+    # alone, and the two reactions are the grain's force reversed
+    x = np.array([[-0.9 * R, 0, 0], [0.9 * R, 0, 0], [0, 1.6 * R, 0]])
+    mat = dem.ContactMaterial(E=2e5, nu=0.25, law="linear", kn=2e5, kt=1e5, density=2650.0,
+                              friction=0.5, restitution=0.5)
+    for pairs in (True, False):
+        p = dem.Particles.spheres(x, np.full(3, R), 2650.0, dim=2,
+                                  kind=np.array([dem.GHOST, dem.GHOST, dem.FREE], np.int8))
+        sim = dem.Simulation(p, mat, allow_overlap=True, prescribed_pairs=pairs)
+        sim.compute_forces()
+        f = p.force
+        if pairs:
+            assert f[0, 0] < 0 and abs(f[0, 0]) > abs(f[1, 0] + f[0, 0])   # pushed apart
+        else:
+            assert np.allclose(f[0] + f[1], -f[2], rtol=1e-14, atol=0)
+            assert f[0, 0] == pytest.approx(-f[1, 0]) and f[0, 0] < 0 and f[0, 1] < 0
