@@ -20,7 +20,7 @@ import ufl
 from dolfinx import fem
 
 from granfe.problem import ContinuumProblem
-from granfe.solvers import REDUNDANT
+from granfe.solvers import ELASTIC_QUASI_NEWTON, REDUNDANT, fixed_jacobian, make_snes_problem
 
 __all__ = ["AlphaParameters", "GeneralizedAlpha"]
 
@@ -60,12 +60,20 @@ class GeneralizedAlpha:
     update them (``.value``) before each :meth:`step` with :meth:`load_time`. A model's
     quadrature-point state is committed when a step is accepted (:meth:`finish`) and
     restored when its solve fails.
+
+    ``tangent``: how a model with state and an elastic tangent (Drucker-Prager) solves a
+    step with a direct solver: ``"elastic"``, quasi-Newton on the elastic Jacobian factorised
+    once for the run (:class:`_ElasticQuasiNewton`; Newton if it fails, counted in
+    :attr:`fallbacks`), or ``"consistent"``, Newton on the consistent tangent, assembled and
+    factorised at every iteration. Both stop at the problem's SNES tolerances.
     """
 
     def __init__(self, problem: ContinuumProblem, dt: float, rho_inf: float = 1.0,
-                 prefix: str | None = None):
+                 prefix: str | None = None, tangent: str = "elastic"):
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt (time step) must be a positive number in s, got {dt!r}")
+        if tangent not in ("elastic", "consistent"):
+            raise ValueError(f"tangent must be 'elastic' or 'consistent', got {tangent!r}")
         self.problem = problem
         self.params = p = AlphaParameters(rho_inf)
         self.t = 0.0
@@ -88,15 +96,25 @@ class GeneralizedAlpha:
         # one's changes with the state (lagged, Newton degrades to a linear rate of ~0.8)
         options = ({"snes_lag_jacobian": -2, "snes_lag_jacobian_persists": True}
                    if model.linear and not problem.state else {})
-        options.update(problem.petsc_options)
-        saved, problem.petsc_options = problem.petsc_options, options
-        self._snes = problem.snes_problem(F, prefix or problem.prefix + "dyn_")
-        problem.petsc_options = saved
+        self._F, self._prefix = F, prefix or problem.prefix + "dyn_"
+        self._newton = None
+        self._quasi = _ElasticQuasiNewton.build(self, F, w_mid, a_mid) if tangent == "elastic" else None
+        self._snes = self._newton_problem(options) if self._quasi is None else self._quasi.nlp
         self._affine = _AffineStep.build(self, F, L)
+        self.fallbacks = 0
         jit = problem.jit_options
         self._kinetic = fem.form(model.kinetic_energy(problem.split(self.v)) * problem.dx, jit_options=jit)
         self._elastic = fem.form(model.stored_energy(problem.split(w), state) * problem.dx, jit_options=jit)
         self._weighted: dict = {}
+
+    def _newton_problem(self, options: dict | None = None, prefix: str | None = None):
+        """Newton on the consistent tangent (the problem's solver options over ``options``)."""
+        problem = self.problem
+        saved, problem.petsc_options = problem.petsc_options, {**(options or {}), **problem.petsc_options}
+        try:
+            return problem.snes_problem(self._F, prefix or self._prefix)
+        finally:
+            problem.petsc_options = saved
 
     def initialize_acceleration(self) -> None:
         """Consistent initial acceleration ``M a_0 = f_ext - f_int(w_0)`` (zero on Dirichlet
@@ -135,12 +153,22 @@ class GeneralizedAlpha:
         """Solve the current step for ``w`` (may be repeated, e.g. by a staggered coupling).
 
         The step's equation is linear (linear material, loads independent of ``w``): with a
-        direct solver it is one solve with the Jacobian factorised once (:class:`_AffineStep`),
-        else a SNES solve."""
+        direct solver it is one solve with the Jacobian factorised once (:class:`_AffineStep`).
+        A plastic model with an elastic tangent: quasi-Newton on it (:class:`_ElasticQuasiNewton`),
+        Newton on the consistent tangent if that fails. Else a SNES (Newton) solve."""
         what = f"dynamic step at t = {self.t + float(self.dt.value):.6g} s"
         try:
             if self._affine is not None:
                 return self.problem.checked_ksp(self._affine.solve(), what)
+            if self._quasi is not None:
+                its = self._quasi.solve()
+                if its is not None:
+                    return self.problem.checked(self._quasi.nlp, what)
+                self.fallbacks += 1
+                if self._newton is None:
+                    self._newton = self._newton_problem(prefix=self._prefix + "newton_")
+                self._newton.solve()
+                return self.problem.checked(self._newton, what)
             self._snes.solve()
             return self.problem.checked(self._snes, what)
         except Exception:
@@ -181,6 +209,52 @@ class GeneralizedAlpha:
                              jit_options=p.jit_options))
             forms = self._weighted[key]
         return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in forms)
+
+
+class _ElasticQuasiNewton:
+    """The generalized-alpha step of a plastic model by quasi-Newton on its elastic Jacobian
+    ``c_m M + (1 - alpha_f) K_elastic`` (:data:`granfe.solvers.ELASTIC_QUASI_NEWTON`). The
+    residual is the step's own, so the answer is Newton's to the solver's tolerance; the
+    Jacobian does not change with the plastic state, so it is assembled and factorised once,
+    again only when dt, a modulus or the Dirichlet conditions change
+    (:func:`granfe.solvers.fixed_jacobian`). A step that stays elastic converges in one
+    iteration."""
+
+    def __init__(self, problem: ContinuumProblem, nlp):
+        self.problem, self.nlp = problem, nlp
+
+    @classmethod
+    def build(cls, stepper: GeneralizedAlpha, F, w_mid, a_mid):
+        """The quasi-Newton step, or None when the model has no state or no elastic tangent
+        (``elastic_work``) or the linear solver is iterative (it would not be factorised)."""
+        problem = stepper.problem
+        model, V = problem.model, problem.V
+        if not problem.state or not hasattr(model, "elastic_work") or problem.solver_kind == "iterative":
+            return None
+        dw = ufl.TestFunctions(V)
+        F_elastic = problem.weighted(model.inertia_work(problem.split(a_mid), dw)
+                                     + model.elastic_work(problem.split(w_mid), dw)) * problem.dx
+        J = ufl.derivative(F_elastic, problem.w, ufl.TrialFunction(V))
+        nlp = make_snes_problem(F, problem.w, problem.bcs, stepper._prefix,
+                                {**ELASTIC_QUASI_NEWTON, **problem.petsc_options}, J=J,
+                                jit_options=problem.jit_options)
+        constants = list(J.constants())
+        fixed_jacobian(nlp, problem.bcs,
+                       lambda: (_values(constants), tuple(id(bc) for bc in problem.bcs)))
+        return cls(problem, nlp)
+
+    def solve(self) -> int | None:
+        """Iterations of a converged solve of ``problem.w``, or None (``w`` back where it
+        started) if it did not converge."""
+        w = self.problem.w.x.array
+        start = w.copy()
+        self.nlp.solve()
+        snes = self.nlp.solver
+        if snes.getConvergedReason() > 0 and np.all(np.isfinite(w)):
+            return snes.getIterationNumber()
+        w[:] = start
+        self.problem.w.x.scatter_forward()
+        return None
 
 
 def _values(constants) -> tuple:

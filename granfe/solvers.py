@@ -1,8 +1,10 @@
 """PETSc SNES set-up: default options, convergence checks, rigid-body near-nullspace.
 
 Direct (MUMPS LU) is the default; ``ONE_LU_PER_STEP`` reuses a load step's first LU for its
-later Newton iterations (plastic paths); ``ITERATIVE`` is CG + smoothed-aggregation AMG
-(GAMG) with the micropolar rigid-body modes as near-nullspace, for large 3D problems.
+later Newton iterations (plastic paths); ``ELASTIC_QUASI_NEWTON`` with :func:`fixed_jacobian`
+steps a plastic model on its elastic Jacobian, factorised once (dynamic steps); ``ITERATIVE``
+is CG + smoothed-aggregation AMG (GAMG) with the micropolar rigid-body modes as
+near-nullspace, for large 3D problems.
 Any PETSc option can be overridden per problem.
 """
 
@@ -19,8 +21,10 @@ __all__ = [
     "REDUNDANT",
     "ITERATIVE",
     "ONE_LU_PER_STEP",
+    "ELASTIC_QUASI_NEWTON",
     "SolveDidNotConverge",
     "make_snes_problem",
+    "fixed_jacobian",
     "check_converged",
     "check_ksp_converged",
     "rigid_body_modes",
@@ -59,6 +63,23 @@ ONE_LU_PER_STEP = {
     "ksp_rtol": 1e-8,
     "ksp_gmres_restart": 100,
     "ksp_max_it": 200,
+}
+
+# quasi-Newton (L-BFGS) whose first inverse is a fixed Jacobian: with the elastic Jacobian of
+# a plastic model, factorised once (fixed_jacobian), an iteration costs a residual and a pair of
+# triangular solves, where Newton assembles the consistent tangent and refactorises it; an
+# elastic step converges in one. L-BFGS although a non-associated tangent is not symmetric:
+# Broyden's updates diverged on the 3D chamber step of benchmarks/plastic_cost.py (tried once,
+# not recorded), Anderson over the fixed-Jacobian iteration took fewer iterations but two
+# residuals each. No step-length test: at a linear rate the steps are small long before the
+# residual is.
+ELASTIC_QUASI_NEWTON = {
+    "snes_type": "qn",
+    "snes_qn_type": "lbfgs",
+    "snes_qn_scale_type": "jacobian",
+    "snes_qn_m": 20,
+    "snes_linesearch_type": "basic",
+    "snes_stol": 0.0,
 }
 
 ITERATIVE = {
@@ -111,6 +132,26 @@ def make_snes_problem(F, w: fem.Function, bcs, prefix: str, options: dict | None
     if near_nullspace is not None:
         problem.A.setNearNullSpace(near_nullspace)
     return problem
+
+
+def fixed_jacobian(problem: NonlinearProblem, bcs, key) -> None:
+    """Assemble the Jacobian of ``problem`` (its ``J`` form, rows and columns of the Dirichlet
+    conditions ``bcs`` replaced by the identity) only when ``key()`` changes, e.g. the values
+    of the form's constants and the conditions: a matrix left untouched keeps its
+    factorisation (PETSc sets a preconditioner up again only when its operator changed)."""
+    from dolfinx.fem.petsc import assemble_matrix
+
+    last = [None]
+
+    def jacobian(snes, x, J, P):
+        k = key()
+        if k != last[0]:
+            J.zeroEntries()
+            assemble_matrix(J, problem.J, bcs, diag=1.0)
+            J.assemble()
+            last[0] = k
+
+    problem.solver.setJacobian(jacobian, problem.A, problem.A)
 
 
 def check_converged(problem: NonlinearProblem, what: str) -> int:

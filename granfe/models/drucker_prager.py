@@ -303,6 +303,12 @@ class MicropolarDruckerPrager(Micropolar):
         sigma = r["sigma"] - _from3(self._initial_stress(), gdim)
         return ufl.inner(sigma, strain(*dw)) + ufl.inner(r["m"], curvature(dw[1]))
 
+    def elastic_work(self, w, dw):
+        """Virtual work of the elastic stresses of ``w`` (micropolar): :meth:`internal_work`'s
+        derivative wherever no point yields. It does not change with the state, so a time
+        stepper may factorise its Jacobian once (:class:`granfe.dynamics.GeneralizedAlpha`)."""
+        return Micropolar.internal_work(self, w, dw, {})
+
     def stored_energy(self, w, state):
         """Elastic energy of the elastic strains (the stored part of the work)."""
         c = self.constants

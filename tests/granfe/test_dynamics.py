@@ -70,6 +70,8 @@ def test_bad_parameters_named():
     stepper_problem = vibrating_bar(1.0, 1e-5, "bad_").problem
     with pytest.raises(ValueError, match="dt"):
         GeneralizedAlpha(stepper_problem, -1.0)
+    with pytest.raises(ValueError, match="tangent must be 'elastic' or 'consistent'"):
+        GeneralizedAlpha(stepper_problem, 1e-5, tangent="secant")
 
 
 def test_consistent_initial_acceleration():

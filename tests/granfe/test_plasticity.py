@@ -1,5 +1,6 @@
 """Micropolar Drucker-Prager: Mohr-Coulomb peaks in triaxial and plane-strain compression,
-the flow rule's dilatancy, the consistent tangent (Taylor test), validation."""
+the flow rule's dilatancy, the consistent tangent (Taylor test), validation; the dynamic step
+on the elastic Jacobian against Newton."""
 
 import math
 
@@ -11,6 +12,7 @@ import pytest
 from dolfinx import mesh
 from taylor import taylor_rates
 
+from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
 from granfe.models.drucker_prager import (
     DruckerPragerMaterial,
@@ -248,3 +250,59 @@ def test_apex_without_dilatancy_keeps_a_finite_plastic_strain():
     eq = p.state.owned("equivalent_plastic_strain")
     # volumetric plastic strain 3e-3 (all the strain: the stress is zero)
     np.testing.assert_allclose(eq, 3e-3, rtol=1e-9)
+
+
+def punched_block(tangent, comm=MPI.COMM_WORLD):
+    """A block under a compressive initial stress (bottom fixed, sides on rollers), a corner of
+    its top pushed down, stepped in time with generalized-alpha: a few steps yield a part of
+    the points under the punch. Tolerances far below the tests' (the answers are compared)."""
+    elastic = MicropolarMaterial.from_engineering(50e6, 0.25, length=0.05, kappa_over_mu=0.5,
+                                                  gamma_over_l2mu=1.0, rho=2000.0)
+    mat = DruckerPragerMaterial(elastic, 1e3, 30.0, 5.0, hardening=2e6, match="triaxial_compression",
+                                initial_stress=(-40e3, -40e3, -100e3))
+    p = ContinuumProblem(mesh.create_box(comm, [[0, 0, 0], [1, 1, 0.5]], [4, 4, 2]),
+                         MicropolarDruckerPrager(mat), degree=(1, 1), prefix=f"punch_{tangent}_",
+                         petsc_options={"snes_rtol": 1e-14, "snes_atol": 1e-8})
+    p.fix(_at(2, 0.0), "u")
+    p.fix(_at(2, 0.0), "phi")
+    for axis, name in ((0, "u_x"), (1, "u_y")):
+        p.fix(_at(axis, 0.0), name)
+        p.fix(_at(axis, 1.0), name)
+    punch = lambda x: np.isclose(x[2], 0.5) & (x[0] < 0.3) & (x[1] < 0.3)  # noqa: E731
+    return GeneralizedAlpha(p, 2e-3, rho_inf=0.8, tangent=tangent), p.fix(punch, "u_z", 0.0)
+
+
+@pytest.mark.mpi
+def test_dynamic_step_on_the_elastic_jacobian_is_newtons():
+    """Quasi-Newton on the elastic Jacobian, factorised once (the default), reaches Newton's
+    answer on the consistent tangent to the solver's tolerance, step by step through yielding
+    and a change of dt; an elastic step takes one iteration; the Jacobian is assembled again
+    only when dt changes."""
+    runs = {}
+    for tangent in ("consistent", "elastic"):
+        stepper, settle = punched_block(tangent)
+        history = []
+        for k, dz in enumerate((-1e-6, -5e-4, -1.5e-3, -3e-3, -4.5e-3, -6e-3)):
+            if k == 4:
+                stepper.dt.value = 1e-3
+            settle.value = dz
+            history.append((stepper.step(), stepper.problem.w.x.array.copy()))
+            if tangent == "elastic" and k == 1:
+                state = stepper._snes.A.stateGet()
+            if tangent == "elastic" and k in (3, 4):
+                assert (stepper._snes.A.stateGet() == state) == (k == 3)   # dt changed at 4
+        runs[tangent] = stepper, history
+    (newton, ref), (quasi, got) = runs["consistent"], runs["elastic"]
+    assert got[0][0] == 1                                  # the first step stays elastic
+    assert quasi.fallbacks == 0 and max(its for its, _ in got) > 2
+    comm = MPI.COMM_WORLD
+    scale = comm.allreduce(float(np.abs(ref[-1][1]).max()), MPI.MAX)
+    for (_, a), (_, b) in zip(ref, got, strict=True):
+        assert comm.allreduce(float(np.abs(a - b).max()), MPI.MAX) < 1e-9 * scale
+    yielding = quasi.problem.state.owned("yielding")
+    share = comm.allreduce(float(yielding.sum()), MPI.SUM) / comm.allreduce(yielding.size, MPI.SUM)
+    assert 0.02 < share < 0.9, share
+    for name, f in newton.problem.state.committed.items():
+        a, b = f.x.array, quasi.problem.state.committed[name].x.array
+        size = comm.allreduce(float(np.abs(a).max()) if a.size else 0.0, MPI.MAX)
+        assert comm.allreduce(float(np.abs(a - b).max()) if a.size else 0.0, MPI.MAX) <= 1e-7 * size, name
