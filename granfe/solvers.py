@@ -138,20 +138,42 @@ def fixed_jacobian(problem: NonlinearProblem, bcs, key) -> None:
     """Assemble the Jacobian of ``problem`` (its ``J`` form, rows and columns of the Dirichlet
     conditions ``bcs`` replaced by the identity) only when ``key()`` changes, e.g. the values
     of the form's constants and the conditions: a matrix left untouched keeps its
-    factorisation (PETSc sets a preconditioner up again only when its operator changed)."""
-    from dolfinx.fem.petsc import assemble_matrix
+    factorisation (PETSc sets a preconditioner up again only when its operator changed).
 
-    last = [None]
+    The residual lifts the Dirichlet values as dolfinx's does, ``b + K (g - x)`` over their
+    columns, but by a product with ``K``, the same form assembled without the conditions
+    (kept with the Jacobian): dolfinx lifts with the form, one element matrix per cell with a
+    constrained dof, on the 3D chamber as long as the residual's own assembly."""
+    from dolfinx.fem.petsc import assemble_matrix, assemble_vector, assign, set_bc
+
+    last, K = [None], assemble_matrix(problem.J)
+    K.assemble()
+    jump = problem.b.duplicate()                    # ghosted, as set_bc writes ghosts too
 
     def jacobian(snes, x, J, P):
         k = key()
         if k != last[0]:
-            J.zeroEntries()
-            assemble_matrix(J, problem.J, bcs, diag=1.0)
-            J.assemble()
+            for A, conditions in ((J, bcs), (K, [])):
+                A.zeroEntries()
+                assemble_matrix(A, problem.J, conditions, diag=1.0)
+                A.assemble()
             last[0] = k
 
+    def residual(snes, x, b):
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        assign(x, problem.u)
+        with b.localForm() as loc:
+            loc.set(0.0)
+        assemble_vector(b, problem.F)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        jump.set(0.0)
+        set_bc(jump, bcs, x0=x)                     # g - x on the Dirichlet dofs, else 0
+        K.multAdd(jump, b, b)
+        set_bc(b, bcs, x0=x, alpha=-1.0)            # x - g on their rows
+        b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+
     problem.solver.setJacobian(jacobian, problem.A, problem.A)
+    problem.solver.setFunction(residual, problem.b)
 
 
 def check_converged(problem: NonlinearProblem, what: str) -> int:
