@@ -13,6 +13,7 @@ from __future__ import annotations
 import dolfinx_solver  # noqa: F401
 from petsc4py import PETSc
 
+import numpy as np
 from dolfinx import fem
 from dolfinx.fem.petsc import NonlinearProblem
 
@@ -159,12 +160,14 @@ def fixed_jacobian(problem: NonlinearProblem, bcs, key) -> None:
                 A.assemble()
             last[0] = k
 
+    coefficients = _Coefficients(problem.F, problem.u)
+
     def residual(snes, x, b):
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         assign(x, problem.u)
         with b.localForm() as loc:
             loc.set(0.0)
-        assemble_vector(b, problem.F)
+        assemble_vector(b, problem.F, coeffs=coefficients.packed(snes.getIterationNumber() == 0))
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         jump.set(0.0)
         set_bc(jump, bcs, x0=x)                     # g - x on the Dirichlet dofs, else 0
@@ -174,6 +177,42 @@ def fixed_jacobian(problem: NonlinearProblem, bcs, key) -> None:
 
     problem.solver.setJacobian(jacobian, problem.A, problem.A)
     problem.solver.setFunction(residual, problem.b)
+
+
+class _Coefficients:
+    """The residual's coefficients packed cell by cell (dolfinx packs them all at every
+    assembly: a third of a Drucker-Prager dynamic residual's time), packed again whole at a
+    solve's first iteration (the state and the last step's fields change between solves)
+    and otherwise only the unknown's columns. Only where a gather of the unknown's cell dofs
+    is its packed form (no dof transformations; checked against dolfinx's packing)."""
+
+    def __init__(self, F, u):
+        self.F, self.u, self.coeffs = F, u, None
+        names = [id(c) for c in F._cpp_object.coefficients]
+        sizes = [c.function_space.dofmap.dof_layout.num_dofs * c.function_space.dofmap.bs
+                 for c in F._cpp_object.coefficients]
+        keys = list(fem.pack_coefficients(F))
+        self.usable = (id(u._cpp_object) in names and len(keys) == 1 and keys[0][0] == fem.IntegralType.cell
+                       and not u.function_space.element.needs_dof_transformations)
+        if self.usable:
+            i = names.index(id(u._cpp_object))
+            self.key, self.columns = keys[0], slice(sum(sizes[:i]), sum(sizes[:i + 1]))
+            cells = F._cpp_object.domains(*self.key)
+            self.dofs = u.function_space.dofmap.list[cells]
+
+    def packed(self, whole: bool):
+        if not self.usable:
+            return None
+        if whole or self.coeffs is None:
+            self.coeffs = fem.pack_coefficients(self.F)
+            gathered = self._gather()
+            self.usable = np.array_equal(self.coeffs[self.key][:, self.columns], gathered)
+        else:
+            self.coeffs[self.key][:, self.columns] = self._gather()
+        return self.coeffs
+
+    def _gather(self):
+        return self.u.x.array[self.dofs].reshape(len(self.dofs), -1)
 
 
 def check_converged(problem: NonlinearProblem, what: str) -> int:
