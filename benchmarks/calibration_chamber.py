@@ -78,7 +78,7 @@ parser.add_argument("--seeds", type=int, default=2 if SHORT else 3, help="packin
 parser.add_argument("--reference-seeds", type=int, default=None,
                     help="packings of the full-DEM reference (default --seeds)")
 parser.add_argument("--smooth", type=float, default=0.006, help="depth window of the q_c filter [m]")
-parser.add_argument("--interface", default="loose", choices=["loose", "iqn-ils"],
+parser.add_argument("--interface", default="loose", choices=["loose", "iqn-ils", "forces"],
                     help="the coupled cases' exchange (coupling.interface)")
 parser.add_argument("--relaxation", type=float, default=0.1,
                     help="coupling.relaxation (0.3 diverged in a short chamber at 1.3 cone diameters)")
@@ -102,6 +102,8 @@ parser.add_argument("--hardening", type=float, nargs="+", default=[0.0],
                     help="the Drucker-Prager cases' hardening of the cohesion [Pa per unit equivalent plastic "
                          "strain], each with every plastic case (0: perfectly plastic; a window driven by its "
                          "grains then drifts once the continuum round it yields)")
+parser.add_argument("--stiffness", type=float, default=1.0,
+                    help="coupling continuum_stiffness: the continuum's constants times this (the coupled cases)")
 parser.add_argument("--friction-deg", type=float, default=30.0,
                     help="the Drucker-Prager continuum's friction angle (plane-strain match)")
 parser.add_argument("--boxes", action="store_true",
@@ -168,13 +170,14 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
                     {} if continuum == "micropolar" else
                     dict(continuum=continuum, continuum_friction_deg=args.friction_deg)) | (
                     {} if constants == "lattice" else dict(continuum_constants=constants)) | (
-                    dict(continuum_hardening=hardening) if hardening else {}) | {
+                    dict(continuum_hardening=hardening) if hardening else {}) | (
+                    dict(continuum_stiffness=args.stiffness) if window and args.stiffness != 1.0 else {}) | {
                     # the handshake named only off its default (the records before it had none)
                     k: v for k, v in exchange(window).items() if k != "handshake" or v != parser.get_default(k)}
 
 
 # the coupled cases' exchange settings, and how a record's name marks one off its default
-EXCHANGE_TAGS = {"interface": lambda v: "_iqn", "relaxation": "_rel{:g}".format,
+EXCHANGE_TAGS = {"interface": {"iqn-ils": "_iqn", "forces": "_forces"}.get, "relaxation": "_rel{:g}".format,
                  "substeps": "_sub{}".format, "handshake": "_hs{:g}".format}
 
 
@@ -282,7 +285,8 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     """One packing of one case in its own process: full DEM of the chamber (window None),
     full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
     tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal") + (
-        f"_h{hardening:g}" if hardening else "") + "".join(
+        f"_h{hardening:g}" if hardening else "") + (
+        f"_k{args.stiffness:g}" if window and args.stiffness != 1.0 else "") + "".join(
         EXCHANGE_TAGS[k](v) for k, v in exchange(window).items() if v != parser.get_default(k))
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"

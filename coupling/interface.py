@@ -240,15 +240,8 @@ class CouplingInterface(DistributedVectors):
     def ghost_motion(self, w: fem.Function | None = None):
         """(u_ghost (n_g, dim), theta_ghost (n_g,) or (n_g, 3)) on every rank: ``Q^ = N D``."""
         w = self.problem.w if w is None else w
-        out = []
-        for f in self.fields:
-            local = f.ghost.interpolate(w)
-            parts = self.comm.allgather((self._ghost_mine, local))
-            values = np.zeros((len(self.ghost_index), f.ghost.value_size))
-            for idx, val in parts:
-                values[idx] = val.reshape(len(idx), f.ghost.value_size)
-            out.append(values)
-        u, theta = out
+        u, theta = (gather_rows(self.comm, f.ghost.interpolate(w), self._ghost_mine, len(self.ghost_index))
+                    for f in self.fields)
         return u, (theta[:, 0] if self.gdim == 2 else theta)
 
     def project(self, u: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -274,6 +267,15 @@ class CouplingInterface(DistributedVectors):
             self.g.x.array[f.prescribed] = values[start: start + f.prescribed.size]
             start += f.prescribed.size
         self.g.x.scatter_forward()
+
+
+def gather_rows(comm, local: np.ndarray, mine: np.ndarray, n: int) -> np.ndarray:
+    """Rows (n, k) on every rank from each rank's rows ``local`` (m, k) at positions ``mine``."""
+    k = local.shape[1]
+    out = np.zeros((n, k))
+    for idx, val in comm.allgather((mine, local)):
+        out[idx] = val.reshape(len(idx), k)
+    return out
 
 
 class ConstantRelaxation:

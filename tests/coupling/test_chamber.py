@@ -202,3 +202,38 @@ def test_hardening_is_validated():
     for bad in (-1.0, float("nan")):
         with pytest.raises(ValueError, match="continuum_hardening must be >= 0 Pa"):
             PenetrationParameters(continuum_hardening=bad)
+
+
+def test_force_exchange_lets_the_continuum_compliance_reach_the_window(tmp_path):
+    """interface = 'forces' (coupling.reactions): the ghosts' reactions load the continuum and
+    nothing of it is prescribed, so the window's edge yields as much as the continuum lets
+    it: twice as stiff, half the ghosts' displacement (the overlapping exchange moves them
+    by displacements alone, nearly whatever the stiffness). A restart continues to the bit."""
+    comm = MPI.COMM_WORLD
+    base = CHAMBER | {"substeps": 10, "relaxation": 0.3, "depth": 0.002}
+    moved = {}
+    for interface in ("loose", "forces"):
+        for stiffness in (1.0, 2.0):
+            prm = PenetrationParameters(**base, interface=interface, continuum_stiffness=stiffness)
+            model = CoupledPenetration(prm, comm, log=lambda m: None)
+            n_bcs = moved.setdefault("bcs", len(model.problem.bcs))
+            if interface == "forces" and stiffness == 1.0:
+                assert len(model.problem.bcs) == n_bcs - 1   # the window's prescribed nodes gone
+                model.run(steps=40)
+                model.save_checkpoint(tmp_path / "ck")
+            history = model.run()
+            assert np.isfinite([h["q_c"] for h in history]).all() and history[-1]["q_c"] > 0
+            u = model._ghost_motion()[0]
+            moved[interface, stiffness] = float(np.sqrt(np.mean(u**2)))
+            if interface == "forces" and stiffness == 1.0:
+                again = CoupledPenetration(prm, comm, log=lambda m: None, checkpoint=tmp_path / "ck")
+                assert [h["q_c"] for h in again.run()] == [h["q_c"] for h in history]
+    assert moved["forces", 2.0] / moved["forces", 1.0] == pytest.approx(0.5, abs=0.05)
+    assert moved["loose", 2.0] / moved["loose", 1.0] > 0.75
+
+
+def test_force_exchange_is_named():
+    with pytest.raises(ValueError, match="'forces'"):
+        PenetrationParameters(interface="force")
+    with pytest.raises(ValueError, match="consolidated state"):
+        PenetrationParameters(dim=3, interface="forces")

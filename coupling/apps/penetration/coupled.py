@@ -78,6 +78,7 @@ from coupling.apps.penetration.parameters import VERTICAL, PenetrationParameters
 from coupling.apps.penetration.penetrators import cone_clump, cone_parts, cone_record, penetrator_clump, tip_height
 from coupling.calibration import lattice_estimate, voigt_estimate
 from coupling.interface import IQNILS, CouplingInterface, IQNOptions
+from coupling.reactions import GhostReactions, window_weight
 from coupling.regions import Box, CouplingRegions
 from coupling.substep import GhostMotion, sub_cycle
 from dem import GHOST, ContactMaterial, Particles, Simulation
@@ -400,8 +401,11 @@ class CoupledPenetration:
             if dim == 3:
                 plate = len(walls)
                 walls.append(top_plate(self.x_grains, radius, dim))
+        # the force-carrying exchange reads a ghost's force as the free grains' push on it
+        self.forces = prm.interface == "forces"
         self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
-                              dt=dem_time_step(prm, radius), allow_overlap=True)
+                              dt=dem_time_step(prm, radius), allow_overlap=True,
+                              prescribed_pairs=not self.forces)
         self.sim.dt *= prm.dt_factor
         # the clump's own (constant) internal forces, to subtract from the penetrator's resultant
         self.sim.compute_forces(update_history=False)
@@ -481,10 +485,17 @@ class CoupledPenetration:
         else:
             self._geostatic_loads()
             self.problem.solve()   # the geostatic state w_geo, before any dof is prescribed
-        # window nodes with few grains in their support (the free surface) stay FE dofs: an
-        # ill-conditioned projection there would amplify the grains' noise
-        self.interface = CouplingInterface(self.problem, self.x_ref, self.kinds, self.regions,
-                                           min_support=0.3)
+        if self.forces:
+            # the grains carry the material inside the window: the continuum's is weighted out
+            window = self.regions.window
+            self.problem.set_weight(window_weight(self.problem.domain,
+                                                  lambda x: window.signed_distance(x[:, :dim]) < 0))
+            self.interface = GhostReactions(self.problem, self.x_ref, self.kinds)
+        else:
+            # window nodes with few grains in their support (the free surface) stay FE dofs: an
+            # ill-conditioned projection there would amplify the grains' noise
+            self.interface = CouplingInterface(self.problem, self.x_ref, self.kinds, self.regions,
+                                               min_support=0.3)
         self.free_local = np.flatnonzero(self.kinds == 0)
         self.ghost_local = np.flatnonzero(self.kinds == 1)
         self._g_ref, self._q_ref = None, None
@@ -496,6 +507,13 @@ class CoupledPenetration:
         # the iterated exchange's accelerator (unused by the loose one); the last step's pairs
         # are reused: the next step's map is nearly the same
         self.accelerator = IQNILS(self.interface, prm.relaxation, IQNOptions(reuse=1))
+        # the forces exchange: the free grains' push on the ghosts at the start (the FE holds the
+        # increment from there), and the last one the continuum was loaded with (relaxed)
+        self.f0 = self.f_applied = None
+        if self.forces and saved is None:   # (a restart reads them: no force pass on its state)
+            self.sim.compute_forces(update_history=False)
+            self.f0 = self.sim.p.force[self.ghost_local, :dim].copy()
+            self.f_applied = np.zeros_like(self.f0)
         if saved is not None:
             self._restore_run(saved)
         self._g_now = None   # ghost motion of the current FE state, kept by each step for the next
@@ -698,6 +716,8 @@ class CoupledPenetration:
         check_push(self.prm, self.sim.dt)
         if self.prm.interface == "loose":
             return self._loose_step()
+        if self.forces:
+            return self._forces_step()
         return self._converged_step()
 
     def _grain_displacement(self) -> np.ndarray:
@@ -812,6 +832,53 @@ class CoupledPenetration:
                                   "total": self.history[-1]["wall_time"]})
         return self.history[-1]
 
+    def _forces_step(self) -> dict:
+        """One FE step of the force-carrying exchange (:mod:`coupling.reactions`): one DEM
+        sub-cycle with the ghosts heading for the last FE state, the free grains' push on the
+        ghosts averaged over it (time-averaged impulses, not the last force: DESIGN's lesson
+        from peers), its increment from the start handed to the FE as nodal loads ``N^T f``
+        (relaxed by ``prm.relaxation``), one FE solve."""
+        prm, sim, st = self.prm, self.sim, self.stepper
+        p, ax, k, dim = sim.p, VERTICAL[prm.dim], len(self.history), prm.dim
+        clock = time.perf_counter
+        t0 = clock()
+        g_prev, g_next = self.g_prev, (self._ghost_motion() if self._g_now is None else self._g_now)
+        t_ghosts = clock() - t0
+        st.predict()
+        t_dem = clock()
+        ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0], self.dt_fe)
+        for servo in self.servos:
+            servo(sim)
+        rows, total = self.ghost_local, np.zeros_like(self.f0)
+
+        def add_reactions():
+            total[:] += p.force[rows, :dim]
+
+        self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
+                               prm.velocity, ax, ghosts, hook=add_reactions)
+        t1 = clock()
+        t_dem = t1 - t_dem
+        push = total / prm.substeps - self.f0
+        self.f_applied += prm.relaxation * (push - self.f_applied)
+        self.interface.apply(self.f_applied)
+        t2 = clock()
+        st.solve()
+        st.finish()
+        t3 = clock()
+        g_new = self._g_now = self._ghost_motion()
+        t4 = clock()
+        mismatch = self._check_ghosts(g_new, g_next, k)
+        self.g_prev = g_next
+        f = p.force[self.pen_index] - self.clump_internal
+        self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
+                                        interface_mismatch=mismatch, dem_time=t_dem,
+                                        ghost_push=float(np.abs(self.f_applied).sum()),
+                                        wall_time=clock() - t0))
+        self.step_timings.append({"ghost_motion": t_ghosts + t4 - t3, "dem": t_dem,
+                                  "projection": t2 - t1, "fe_solve": t3 - t2,
+                                  "total": self.history[-1]["wall_time"]})
+        return self.history[-1]
+
     def _refined_depth(self) -> float:
         """Depth [m] down to which the chamber's mesh is refined to the window's element
         size: the window's (a window that moves needs more)."""
@@ -856,8 +923,9 @@ class CoupledPenetration:
                      **{f"iqn.{k}": v for k, v in self.accelerator.state_dict().items()})
             if comm.rank != 0:
                 return [name]
+            forces = {} if self.f0 is None else {"f0": self.f0, "f_applied": self.f_applied}
             np.savez(tmp / "grains.npz", **_dem_state(self.sim), x_ref=self.x_ref, pen0=self.pen0,
-                     g_prev_u=self.g_prev[0], g_prev_theta=self.g_prev[1])
+                     g_prev_u=self.g_prev[0], g_prev_theta=self.g_prev[1], **forces)
             state = {"step": step, "depth": self.depth, "t": st.t,
                      "ranks": comm.size, "surface": self.surface,
                      "material": asdict(self.material_fe), "packing": self.contact_stats,
@@ -924,4 +992,6 @@ class CoupledPenetration:
         self.history = state["history"]
         g = saved["grains"]
         self.g_prev = (g["g_prev_u"], g["g_prev_theta"])
+        if self.forces:
+            self.f0, self.f_applied = g["f0"].copy(), g["f_applied"].copy()
         self.log(f"restarted from step {state['step']} (depth {self.depth:.4g} m)")

@@ -51,9 +51,11 @@ class PenetrationParameters:
     velocity: float = 0.2
     depth: float = 0.04
     substeps: int = 50
-    relaxation: float = 0.3           # of the prescribed values D^ per FE step
+    relaxation: float = 0.3           # of the prescribed values D^ (forces: the loads) per FE step
     # "loose": one exchange per FE step, relaxed; "iqn-ils": the exchange iterated within the
-    # FE step (DEM rewound each time) to interface_tol, accelerated by interface quasi-Newton
+    # FE step (DEM rewound each time) to interface_tol, accelerated by interface quasi-Newton;
+    # "forces": ghosts from the FE, their reactions back as its loads, nothing of the FE
+    # prescribed (coupling.reactions), one exchange per FE step
     interface: str = "loose"
     interface_tol: float = 1e-3       # relative change of the prescribed displacements
     interface_max_iterations: int = 15
@@ -146,8 +148,8 @@ class PenetrationParameters:
                              f"dt_factor <= {1 / DEFAULT_SAFETY[law]:g})")
         if self.substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {self.substeps!r}")
-        if self.interface not in ("loose", "iqn-ils"):
-            raise ValueError(f"interface must be 'loose' or 'iqn-ils', got {self.interface!r}")
+        if self.interface not in ("loose", "iqn-ils", "forces"):
+            raise ValueError(f"interface must be 'loose', 'iqn-ils' or 'forces', got {self.interface!r}")
         if not 0 < self.interface_tol < 1:
             raise ValueError(f"interface_tol must lie in (0, 1), got {self.interface_tol!r}")
         if not (isinstance(self.interface_max_iterations, int) and self.interface_max_iterations >= 1):
@@ -156,6 +158,10 @@ class PenetrationParameters:
 
     def _check_loading(self):
         """The chamber's loading (coupling.apps.penetration.chamber) and the continuum model."""
+        if self.interface == "forces" and self.dim == 3 and self.vertical_stress == 0:
+            raise ValueError("interface = 'forces' needs the increment from a consolidated state "
+                             "(2D, or vertical_stress > 0 in 3D): the 3D geostatic start "
+                             "prescribes the window's nodes")
         if self.continuum not in ("micropolar", "micropolar_drucker_prager"):
             raise ValueError(f"continuum must be 'micropolar' or 'micropolar_drucker_prager', "
                              f"got {self.continuum!r}")

@@ -101,9 +101,11 @@ class ContinuumModel:
 @dataclass(frozen=True)
 class Exchange:
     """DE sub-steps per FE step; the exchange (``interface``): ``loose``, one pass per FE step
-    with the prescribed FE values relaxed by ``relaxation``, or ``iqn-ils``, iterated within
+    with the prescribed FE values relaxed by ``relaxation``, ``iqn-ils``, iterated within
     the FE step to ``interface_tol`` (interface quasi-Newton; ``relaxation`` is its first
-    step). ``dt_factor``: the DEM step over the law's default (0.05 of the critical step of
+    step), or ``forces``, one pass per FE step with the ghosts' reactions as the continuum's
+    loads (relaxed by ``relaxation``) and nothing of it prescribed (`coupling.reactions`).
+    ``dt_factor``: the DEM step over the law's default (0.05 of the critical step of
     the linear law, 0.2 Rayleigh for Hertz-Mindlin; up to 20 / 5)."""
 
     substeps: int = parameter(P, "substeps")
