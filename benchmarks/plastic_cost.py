@@ -37,8 +37,28 @@ times (min and median over steps and repeats), the path times (min and median ov
 repeats), the Newton iterations per step, the share of yielding points at the end, and the
 ratios plastic / elastic of the median path times (wall and CPU); the CPU model from ``/proc/cpuinfo``.
 
+The dynamic case (``--cases dynamic``, recorded under ``"dynamic"``): the FE time step of the
+coupled 3D calibration chamber (``scenes/chamber_3d.toml``'s box, its window refined to
+``--dynamic-h``, its FE step of 10 DEM steps, generalized-alpha with rho_inf 0.8, the solver
+``"redundant"`` and the Newton tolerance of the coupled run), the soil under 100 kPa with the
+Drucker-Prager cone of the README's 3D plastic run, the top nodes within 12 mm of the axis
+pushed down at the cone's speed (1 m/s) for ``--dynamic-steps`` steps, in place of the grains.
+Variants: ``elastic`` (the affine step: one solve with the Jacobian factorised once),
+``plastic_newton`` (Newton on the consistent tangent, the step as it was:
+``GeneralizedAlpha(tangent="consistent")``), ``plastic_newton_one_lu`` (the same with
+``ONE_LU_PER_STEP``), ``plastic_elastic_qn`` (quasi-Newton on the elastic Jacobian
+factorised once for the run, the default now) and ``plastic_elastic_qn_tight`` (the same
+stopped at a thousandth of the absolute tolerance, compared with ``plastic_newton_tight``,
+Newton stopped there: the difference from Newton's answer is the tolerance's). Per variant
+the step times (min and median over steps and repeats, wall and CPU), the iterations, the LU
+factorisations of a run (PETSc's ``MatLUFactorNum`` count), the yielding share and punch
+force at the end, and the largest difference of the final fields and the punch force from
+Newton's at the same tolerance. A run of some meshes replaces only those meshes' records.
+
 Run: ``python benchmarks/plastic_cost.py`` (serial; ``--h-window 0.02 0.01`` for about 10 min on
-the 2-core VM beside other jobs).
+the 2-core VM beside other jobs); the dynamic case alone, one mesh a run (each under 5 min):
+``python benchmarks/plastic_cost.py --cases dynamic --dynamic-h 0.006 --repeat 3``, then
+``--dynamic-h 0.0045 --repeat 1``.
 """
 
 from __future__ import annotations
@@ -46,16 +66,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
-from machine import cpu_model
+from machine import cpu_model, machine
 
+from granfe.dynamics import GeneralizedAlpha
 from granfe.materials import MicropolarMaterial
 from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
 from granfe.models.micropolar import Micropolar
@@ -79,6 +102,11 @@ parser.add_argument("--load-tol", type=float, default=1e-8,
                     help="Newton tolerance of the *_tol variants, relative to the load increment's residual")
 parser.add_argument("--solver", choices=("direct", "iterative"), default="direct")
 parser.add_argument("--out", type=Path, default=Path("output/plastic_cost"))
+parser.add_argument("--cases", nargs="+", choices=("static", "dynamic"), default=["static", "dynamic"],
+                    help="static: the load steps of the chamber; dynamic: the coupled chamber's time step")
+parser.add_argument("--dynamic-h", type=float, nargs="+", default=[0.006] if SHORT else [0.006, 0.0045],
+                    help="element sizes in the dynamic case's window [m] (one mesh each)")
+parser.add_argument("--dynamic-steps", type=int, default=3 if SHORT else 6, help="time steps of the dynamic case")
 args = parser.parse_args()
 comm = MPI.COMM_WORLD
 
@@ -200,46 +228,208 @@ VARIANTS = {"elastic": Variant(Micropolar, elastic),
             "plastic_secant_tol_one_lu": Variant(MicropolarDruckerPrager, plastic, True, LOAD_TOL, ONE_LU_PER_STEP)}
 PLASTIC = [k for k in VARIANTS if k != "elastic"]
 
-# ---- measure ---------------------------------------------------------------------------
-results = {"what": "wall time of a 3D load step of the calibration chamber (gravity, then a rough "
-                   "punch), micropolar Drucker-Prager against micropolar elastic on the same mesh",
-           "inputs": {"chamber": [R, H], "window": [window_radius, window_depth],
-                      "punch_radius": punch_radius, "h_far": args.h_far, "degree": list(args.degree),
-                      "steps": args.steps, "settlement": args.settlement, "repeat": args.repeat,
-                      "solver": args.solver, "E": E, "nu": nu, "kappa": kappa, "length": length,
-                      "cohesion": cohesion, "friction_deg": friction, "dilatancy_deg": dilatancy,
-                      "match": "triaxial_compression", "density": rho, "ranks": comm.size,
-                      "short": SHORT},
-           "cpu": cpu_model(), "meshes": []}
-data, names = chamber(max(args.h_window))
-for name, variant in VARIANTS.items():                                    # compile every form once
-    push(data, names, variant, f"warm_{name}")
-for h in args.h_window:
-    data, names = chamber(h)
-    entry = {"h_window": h, "cells": comm.allreduce(data.mesh.topology.index_map(3).size_local, MPI.SUM)}
-    for rep in range(args.repeat):
-        for name, variant in VARIANTS.items():                                 # interleaved: a
-            entry.setdefault(name, []).append(                                   # busy spell hits
-                push(data, names, variant, f"{name}{rep}_{h:g}"))                # all
-    for name in VARIANTS:
-        entry["dofs"] = entry[name][-1]["dofs"]
-        entry[name] = summarise(entry[name])
-    for name in PLASTIC:
-        entry[f"{name}_over_elastic"] = entry[name]["path_s_median"] / entry["elastic"]["path_s_median"]
-        entry[f"{name}_over_elastic_cpu"] = (entry[name]["path_cpu_s_median"]
-                                             / entry["elastic"]["path_cpu_s_median"])
-    results["meshes"].append(entry)
-    log(f"h {h:g}: {entry['dofs']} dofs, {entry['cells']} cells; elastic path "
-        f"{entry['elastic']['path_cpu_s_median']:.2f} s CPU; yielding "
-        f"{100 * entry['plastic']['yielding_share']:.0f} % of the points at the end")
-    for name in PLASTIC:
-        log(f"  {name}: x {entry[f'{name}_over_elastic_cpu']:.2f} CPU, x "
-            f"{entry[f'{name}_over_elastic']:.2f} wall, Newton its {entry[name]['newton_iterations']}, "
-            f"punch force {entry[name]['punch_force']:.9g} N")
+# ---- the dynamic step of the coupled 3D chamber -------------------------------------------
+# scenes/chamber_3d.toml's box (24 cm wide, 8.4 cm deep) refined over a window 6 cm wide and
+# 7 cm deep, its FE step (10 DEM steps of 14 us), the cone's speed; the soil at 100 kPa
+# vertical (K0 0.44) and the Drucker-Prager cone of the README's 3D plastic run (30 deg,
+# hardening 2 MPa, cohesionless); E such that the wave crosses 2.6 window elements a step
+BOX = dict(width=0.24, depth=0.084, window_width=0.06, window_depth=0.07)
+DT, SPEED, PUNCH = 1.4e-4, 1.0, 0.012        # [s], [m/s], radius of the pushed top nodes [m]
+E_D, NU_D, RHO_D, LENGTH_D = 20e6, 0.25, 1600.0, 3e-3
+S0 = (-44e3, -44e3, -100e3)                  # initial stress [Pa], tension positive
+G_D = E_D / (2 * (1 + NU_D))
+elastic_d = MicropolarMaterial(lam=E_D * NU_D / ((1 + NU_D) * (1 - 2 * NU_D)), mu=G_D - G_D / 4,
+                               kappa=G_D / 2, gamma=2 * G_D * LENGTH_D**2, rho=RHO_D, j=LENGTH_D**2)
+plastic_d = DruckerPragerMaterial(elastic_d, 0.0, 30.0, 0.0, hardening=2e6,
+                                  match="triaxial_compression", initial_stress=S0)
+# name: model, material, PETSc options, GeneralizedAlpha's tangent, Newton's absolute
+# tolerance in units of the coupled run's
+DYNAMIC = {"elastic": (Micropolar, elastic_d, {}, "elastic", 1.0),
+           "plastic_newton": (MicropolarDruckerPrager, plastic_d, {}, "consistent", 1.0),
+           "plastic_newton_one_lu": (MicropolarDruckerPrager, plastic_d, ONE_LU_PER_STEP, "consistent", 1.0),
+           "plastic_elastic_qn": (MicropolarDruckerPrager, plastic_d, {}, "elastic", 1.0),
+           "plastic_newton_tight": (MicropolarDruckerPrager, plastic_d, {}, "consistent", 1e-3),
+           "plastic_elastic_qn_tight": (MicropolarDruckerPrager, plastic_d, {}, "elastic", 1e-3)}
 
+
+def dynamic_run(data, names, h: float, name: str, steps: int, tag: str) -> dict:
+    """The box chamber pushed at the cone's speed on the top nodes within PUNCH of the axis for
+    ``steps`` generalized-alpha steps (rho_inf 0.8, as the coupled run); per step the times
+    and iterations, per run the LU factorisations, the punch force and the final field."""
+    model, material, options, tangent, atol = DYNAMIC[name]
+    # the coupled chamber's solver and Newton tolerance (a millionth of the nodal force the
+    # initial stress puts on a window element)
+    problem = ContinuumProblem(data.mesh, model(material), facet_tags=data.facet_tags, tag_names=names,
+                               degree=(1, 1), prefix=f"dyn_{tag}_", solver="redundant",
+                               petsc_options={"snes_atol": atol * 1e-6 * abs(S0[2]) * h**2, **options})
+    problem.fix("bottom", "u")
+    problem.fix("bottom", "phi")
+    for side, c in (("left", "u_x"), ("right", "u_x"), ("front", "u_y"), ("back", "u_y")):
+        problem.fix(side, c)
+
+    def punch(x):
+        return np.isclose(x[2], 0.0) & (np.hypot(x[0], x[1]) <= PUNCH + 1e-9)
+
+    problem.fix(punch, "u_x")
+    problem.fix(punch, "u_y")
+    settle = problem.fix(punch, "u_z", 0.0)
+    stepper = GeneralizedAlpha(problem, DT, rho_inf=0.8, tangent=tangent)
+    factorisations = PETSc.Log.Event("MatLUFactorNum")
+    lu0 = factorisations.getPerfInfo()["count"]
+    times, cpu, its = [], [], []
+    for _ in range(steps):
+        settle.value = -SPEED * (stepper.t + DT)
+        comm.barrier()
+        t0, c0 = time.perf_counter(), time.process_time()
+        its.append(stepper.step())
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    yielding = problem.state.owned("yielding") if problem.state else np.zeros(0)
+    share = comm.allreduce(float(yielding.sum()), MPI.SUM) / max(comm.allreduce(yielding.size, MPI.SUM), 1)
+    return {"step_s": times, "step_cpu_s": cpu, "iterations": its, "path_s": float(sum(times)),
+            "path_cpu_s": float(sum(cpu)), "punch_force": -problem.reaction(punch, "u_z"),
+            "yielding_share": share, "fallbacks": stepper.fallbacks,
+            "lu_factorisations": int(factorisations.getPerfInfo()["count"] - lu0),
+            "dofs": problem.V.dofmap.index_map.size_global * problem.V.dofmap.index_map_bs,
+            "w": problem.w.x.array[:problem.V.dofmap.index_map.size_local * problem.V.dofmap.index_map_bs].copy()}
+
+
+def dynamic_case() -> dict:
+    PETSc.Log.begin()
+    out = {"what": "wall and CPU time of a dynamic (generalized-alpha) FE step of a 3D box chamber "
+                   "shaped like the coupled 3D calibration chamber's, its top nodes about the axis "
+                   "pushed at the cone's speed: micropolar Drucker-Prager by Newton on the consistent "
+                   "tangent (plastic_newton, the step as it was), the same with one LU a step "
+                   "(plastic_newton_one_lu), by quasi-Newton on the elastic Jacobian factorised once "
+                   "(plastic_elastic_qn, GeneralizedAlpha's default now; _tight: Newton and it at a "
+                   "thousandth of the absolute tolerance), against the elastic step "
+                   "(one solve with the Jacobian factorised once, _AffineStep)",
+           "inputs": {"box": BOX, "h_far": 0.03, "dt": DT, "speed": SPEED, "punch_radius": PUNCH,
+                      "steps": args.dynamic_steps, "rho_inf": 0.8,
+                      "E": E_D, "nu": NU_D, "density": RHO_D, "length": LENGTH_D,
+                      "kappa_over_G": 0.5, "friction_deg": 30.0, "dilatancy_deg": 0.0,
+                      "cohesion": 0.0, "hardening": 2e6, "initial_stress": list(S0),
+                      "solver": "redundant", "snes_atol": "1e-6 * 100 kPa * h_window^2 (the coupled run's)",
+                      "ranks": comm.size, "short": SHORT},
+           "meshes": []}
+    for h in args.dynamic_h:
+        before = machine()
+        data = build_chamber(comm, 3, shape="box", h_window=h, h_far=0.03, **BOX)
+        names = {k: tag for k, (d, tag) in data.physical_groups.items() if d == 2}
+        for name in DYNAMIC if h == args.dynamic_h[0] else ():    # compile the forms (not timed)
+            dynamic_run(data, names, h, name, 1, f"warm_{name}_{h:g}")
+        runs: dict[str, list] = {}
+        for rep in range(args.repeat):
+            for name in DYNAMIC:                          # interleaved: a busy spell hits all
+                runs.setdefault(name, []).append(
+                    dynamic_run(data, names, h, name, args.dynamic_steps, f"{name}{rep}_{h:g}"))
+        entry = {"h_window": h, "dofs": runs["elastic"][-1]["dofs"],
+                 "cells": comm.allreduce(data.mesh.topology.index_map(3).size_local, MPI.SUM),
+                 "repeat": args.repeat, "machine": before, "commit": subprocess.run(
+                     ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                     cwd=Path(__file__).parent).stdout.strip(),
+                 "load_average_1min_after": machine()["load_average_1min"]}
+        for name, rs in runs.items():
+            e = summarise_dynamic(rs)
+            if name != "elastic":
+                # the same answer as Newton's at the same tolerance: the largest difference of
+                # the fields at the end, relative to the largest value, and of the punch force
+                reference = runs["plastic_newton_tight" if name.endswith("_tight") else "plastic_newton"]
+                e["w_difference_vs_newton"] = max(
+                    comm.allreduce(float(np.abs(r["w"] - q["w"]).max()), MPI.MAX)
+                    / comm.allreduce(float(np.abs(q["w"]).max()), MPI.MAX) for r, q in zip(rs, reference, strict=True))
+                e["force_difference_vs_newton"] = max(abs(r["punch_force"] / q["punch_force"] - 1)
+                                                      for r, q in zip(rs, reference, strict=True))
+                for clock in ("s", "cpu_s"):
+                    e[f"step_{clock}_median_over_elastic"] = (e[f"step_{clock}_median"]
+                                                              / runs_median(runs["elastic"], clock))
+            entry[name] = e
+        out["meshes"].append(entry)
+        log(f"dynamic h {h:g}: {entry['dofs']} dofs; elastic step {1e3 * runs_median(runs['elastic'], 's'):.1f} ms")
+        for name in DYNAMIC:
+            e = entry[name]
+            log(f"  {name}: step median {e['step_s_median']:.3f} s (CPU {e['step_cpu_s_median']:.3f} s), "
+                f"x {e.get('step_s_median_over_elastic', 1.0):.1f} the elastic step, iterations "
+                f"{e['iterations']}, LU {e['lu_factorisations']}, yielding {100 * e['yielding_share']:.0f} %, "
+                f"force {e['punch_force']:.9g} N")
+    return out
+
+
+def runs_median(runs: list[dict], clock: str) -> float:
+    return float(np.median(np.concatenate([r[f"step_{clock}"] for r in runs])))
+
+
+def summarise_dynamic(runs: list[dict]) -> dict:
+    out = {}
+    for clock in ("s", "cpu_s"):        # wall and CPU (process) time, over all steps and repeats
+        steps = np.concatenate([r[f"step_{clock}"] for r in runs])
+        paths = np.array([r[f"path_{clock}"] for r in runs])
+        out.update({f"step_{clock}_min": float(steps.min()), f"step_{clock}_median": float(np.median(steps)),
+                    f"path_{clock}_min": float(paths.min()), f"path_{clock}_median": float(np.median(paths))})
+    last = runs[-1]
+    return {**out, "iterations": last["iterations"], "step_s_last_repeat": last["step_s"],
+            "lu_factorisations": last["lu_factorisations"], "fallbacks": sum(r["fallbacks"] for r in runs),
+            "yielding_share": last["yielding_share"], "punch_force": last["punch_force"]}
+
+
+def static_case() -> dict:
+    results = {"what": "wall time of a 3D load step of the calibration chamber (gravity, then a rough "
+                       "punch), micropolar Drucker-Prager against micropolar elastic on the same mesh",
+               "inputs": {"chamber": [R, H], "window": [window_radius, window_depth],
+                          "punch_radius": punch_radius, "h_far": args.h_far, "degree": list(args.degree),
+                          "steps": args.steps, "settlement": args.settlement, "repeat": args.repeat,
+                          "solver": args.solver, "E": E, "nu": nu, "kappa": kappa, "length": length,
+                          "cohesion": cohesion, "friction_deg": friction, "dilatancy_deg": dilatancy,
+                          "match": "triaxial_compression", "density": rho, "ranks": comm.size,
+                          "short": SHORT},
+               "cpu": cpu_model(), "meshes": []}
+    data, names = chamber(max(args.h_window))
+    for name, variant in VARIANTS.items():                                    # compile every form once
+        push(data, names, variant, f"warm_{name}")
+    for h in args.h_window:
+        data, names = chamber(h)
+        entry = {"h_window": h, "cells": comm.allreduce(data.mesh.topology.index_map(3).size_local, MPI.SUM)}
+        for rep in range(args.repeat):
+            for name, variant in VARIANTS.items():                                 # interleaved: a
+                entry.setdefault(name, []).append(                                   # busy spell hits
+                    push(data, names, variant, f"{name}{rep}_{h:g}"))                # all
+        for name in VARIANTS:
+            entry["dofs"] = entry[name][-1]["dofs"]
+            entry[name] = summarise(entry[name])
+        for name in PLASTIC:
+            entry[f"{name}_over_elastic"] = entry[name]["path_s_median"] / entry["elastic"]["path_s_median"]
+            entry[f"{name}_over_elastic_cpu"] = (entry[name]["path_cpu_s_median"]
+                                                 / entry["elastic"]["path_cpu_s_median"])
+        results["meshes"].append(entry)
+        log(f"h {h:g}: {entry['dofs']} dofs, {entry['cells']} cells; elastic path "
+            f"{entry['elastic']['path_cpu_s_median']:.2f} s CPU; yielding "
+            f"{100 * entry['plastic']['yielding_share']:.0f} % of the points at the end")
+        for name in PLASTIC:
+            log(f"  {name}: x {entry[f'{name}_over_elastic_cpu']:.2f} CPU, x "
+                f"{entry[f'{name}_over_elastic']:.2f} wall, Newton its {entry[name]['newton_iterations']}, "
+                f"punch force {entry[name]['punch_force']:.9g} N")
+    for entry in results["meshes"]:
+        assert entry["plastic"]["yielding_share"] > 0.01, "the punch did not yield the soil"
+        assert all(i == 1 for i in entry["elastic"]["newton_iterations"])
+    return results
+
+
+# ---- measure ---------------------------------------------------------------------------
+# a file of earlier runs keeps the cases not run now
+path = args.out / "results.json"
+results = json.loads(path.read_text()) if path.exists() else {}
+if "static" in args.cases:
+    results.update(static_case())
+if "dynamic" in args.cases:         # meshes measured now replace those of the same size
+    new = dynamic_case()
+    sizes = {e["h_window"] for e in new["meshes"]}
+    kept = [e for e in results.get("dynamic", {}).get("meshes", []) if e["h_window"] not in sizes]
+    new["meshes"] = sorted(kept + new["meshes"], key=lambda e: -e["h_window"])
+    results["dynamic"] = new
 if comm.rank == 0:
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(results, indent=1))
-for entry in results["meshes"]:
-    assert entry["plastic"]["yielding_share"] > 0.01, "the punch did not yield the soil"
-    assert all(i == 1 for i in entry["elastic"]["newton_iterations"])
+    path.write_text(json.dumps(results, indent=1))
+for entry in new["meshes"] if "dynamic" in args.cases else []:
+    assert entry["plastic_newton"]["yielding_share"] > 0.01, "the punch did not yield the soil"
+    assert all(i == 1 for i in entry["elastic"]["iterations"])
+    assert entry["plastic_elastic_qn"]["fallbacks"] == 0
