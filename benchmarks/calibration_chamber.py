@@ -360,6 +360,19 @@ def seed_reference(bc: str, seeds: list[int]) -> None:
     args.reuse = True
 
 
+def case_label(case: dict) -> str:
+    """The continuum and exchange of a coupled case's summary (records before these fields
+    had the defaults)."""
+    label = f"{case.get('continuum', 'micropolar')}, {case.get('constants', 'lattice')} constants"
+    if case.get("hardening"):
+        label += f", H {case['hardening'] / 1e6:g} MPa"
+    if case.get("stiffness", 1.0) != 1.0:
+        label += f", stiffness x{case['stiffness']:g}"
+    if case.get("exchange", {}).get("interface", "loose") != "loose":
+        label += f", {case['exchange']['interface']} exchange"
+    return label
+
+
 def cpu_total(runs: list[dict]) -> float | None:
     """Mean CPU seconds (set-up + push) of runs that recorded them (None if any did not)."""
     if not all("push_cpu_s" in r for r in runs):
@@ -463,7 +476,8 @@ def compare(bc: str) -> dict:
         push = float(np.mean([r["push_s"] for r in runs]))
         cpu = cpu_total(runs)
         case = {"window_half_width": window, "continuum": continuum, "constants": constants,
-                "hardening": hardening, "grains": runs[0]["grains"],
+                "hardening": hardening, "stiffness": args.stiffness, "exchange": exchange(window),
+                "grains": runs[0]["grains"],
                 "dofs": runs[0]["dofs"],
                 "setup_s": [r["setup_s"] for r in runs], "push_s": [r["push_s"] for r in runs],
                 "total_s_mean": total, "push_s_mean": push,
@@ -492,7 +506,7 @@ def compare(bc: str) -> dict:
                 "runs": tried}
         case["within_reference_scatter"] = case["q_c_rms_error"] <= reference["one_packing_rms_vs_average"]
         cases.append(case)
-        print(f"{bc} window {window * 100:.1f} cm, {name}, {constants} constants: {case['grains']} grains, "
+        print(f"{bc} window {window * 100:.1f} cm, {case_label(case)}: {case['grains']} grains, "
               f"{case['speedup_total']:.1f}x faster "
               f"(push {case['speedup_push']:.1f}x), q_c RMS error {case['q_c_rms_error']:.1%} (reference scatter "
               f"{reference['one_packing_rms_vs_average']:.1%}), steady mean {case['q_c_steady_error']:.1%}", flush=True)
@@ -540,11 +554,10 @@ def plot(results: dict) -> None:
             if w not in best or c["q_c_rms_error"] < best[w]["q_c_rms_error"]:
                 best[w] = c
         for c in (best[w] for w in sorted(best)):
-            plastic = " plastic" if c.get("continuum", "micropolar") != "micropolar" else ""
-            plastic += f" H {c['hardening'] / 1e6:g} MPa" if c.get("hardening") else ""
+            plastic = c.get("continuum", "micropolar") != "micropolar"
             calibrated = c.get("constants", "lattice") == "calibrated"
             ax.plot(np.array(c["q_c_mean"]) / 1e3, d, ls="--" if plastic else "-", lw=2 if calibrated else 1,
-                    label=f"coupled{plastic}{', calibrated' if calibrated else ''}, window "
+                    label=f"coupled ({case_label(c)}), window "
                           f"{c['window_half_width'] * 100:.1f} cm ({c['grains']} grains)")
         if r.get("liggghts"):
             ax.plot(np.array(r["liggghts"]["q_c_mean"]) / 1e3, d, color="C3", lw=1.5,
@@ -565,19 +578,16 @@ def plot(results: dict) -> None:
         color = f"C{k}"
         ax.axhspan(0, ref["one_packing_rms_vs_average"], color=color, alpha=0.12,
                    label=f"{bc}: one full-DEM packing vs average")
-        groups = sorted({(c.get("constants", "lattice"), c.get("continuum", "micropolar"), c.get("hardening", 0.0))
-                         for c in r["coupled"]}, key=lambda g: (g[0] != "lattice", g[1], g[2]))
-        for (constants, model, hardening), marker in zip(groups, "os^DvP*h", strict=False):
-            pts = [c for c in r["coupled"] if "q_c_rms_error" in c and c.get("continuum", "micropolar") == model
-                   and c.get("constants", "lattice") == constants and c.get("hardening", 0.0) == hardening]
-            if hardening:
-                model = f"{model}, H {hardening / 1e6:g} MPa"
+        groups = sorted({case_label(c) for c in r["coupled"]})
+        for label, marker in zip(groups, "os^DvP*h", strict=False):
+            pts = [c for c in r["coupled"] if "q_c_rms_error" in c and case_label(c) == label]
+            constants = pts[0].get("constants", "lattice") if pts else "lattice"
             if pts:
                 # markers only: run times measured on shared cores are noisier than the
                 # windows' order, so a line through them would zigzag
                 ax.plot([c["total_s_mean"] for c in pts], [c["q_c_rms_error"] for c in pts], marker, color=color,
                         mfc="none" if constants == "lattice" else color,
-                        label=f"{bc}: coupled, {model}, {constants} (seed-averaged)")
+                        label=f"{bc}: coupled, {label} (seed-averaged)")
                 for c in pts:
                     ax.annotate(f"{c['window_half_width'] * 100:g}", (c["total_s_mean"], c["q_c_rms_error"]),
                                 fontsize=6, xytext=(3, 3), textcoords="offset points")
@@ -617,8 +627,7 @@ if __name__ == "__main__":
         cases = {}
 
         def key(x):
-            return (x["window_half_width"], x.get("continuum", "micropolar"), x.get("constants", "lattice"),
-                    x.get("hardening", 0.0))
+            return (case_label(x), x["window_half_width"])
 
         for part in parts:
             # a later file's reference replaces an earlier one's; coupled cases are joined, a
