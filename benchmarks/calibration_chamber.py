@@ -93,11 +93,12 @@ parser.add_argument("--continuum", nargs="+", default=None,
                     choices=["micropolar", "micropolar_drucker_prager"],
                     help="the coupled cases' continuum models (each with every window)")
 parser.add_argument("--constants", nargs="+", default=None,
-                    choices=["lattice", "calibrated"],
+                    choices=["lattice", "calibrated", "window"],
                     help="where the coupled cases' continuum constants come from (each with every "
-                         "model and window): the lattice estimate, or element tests on a periodic "
+                         "model and window): the lattice estimate, element tests on a periodic "
                          "cell of the grains at the window's stress (with the plastic model also "
-                         "its friction and dilatancy angles)")
+                         "its friction and dilatancy angles), or (3D) the lattice estimate scaled to "
+                         "the window's constrained modulus probed in situ")
 parser.add_argument("--hardening", type=float, nargs="+", default=[0.0],
                     help="the Drucker-Prager cases' hardening of the cohesion [Pa per unit equivalent plastic "
                          "strain], each with every plastic case (0: perfectly plastic; a window driven by its "
@@ -284,7 +285,7 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
              constants: str = "lattice", box: float | None = None, hardening: float = 0.0) -> dict:
     """One packing of one case in its own process: full DEM of the chamber (window None),
     full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
-    tag = ("" if continuum == "micropolar" else "_dp") + ("" if constants == "lattice" else "_cal") + (
+    tag = ("" if continuum == "micropolar" else "_dp") + CONSTANTS_TAGS[constants] + (
         f"_h{hardening:g}" if hardening else "") + (
         f"_k{args.stiffness:g}" if window and args.stiffness != 1.0 else "") + "".join(
         EXCHANGE_TAGS[k](v) for k, v in exchange(window).items() if v != parser.get_default(k))
@@ -358,6 +359,9 @@ def seed_reference(bc: str, seeds: list[int]) -> None:
         path.write_text(json.dumps(case))
         path.with_suffix(".out.json").write_text(json.dumps(run))
     args.reuse = True
+
+
+CONSTANTS_TAGS = {"lattice": "", "calibrated": "_cal", "window": "_win"}
 
 
 def case_label(case: dict) -> str:

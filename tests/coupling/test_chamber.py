@@ -237,3 +237,28 @@ def test_force_exchange_is_named():
         PenetrationParameters(interface="force")
     with pytest.raises(ValueError, match="consolidated state"):
         PenetrationParameters(dim=3, interface="forces")
+
+
+def test_window_constants_probe_the_windows_modulus_in_situ():
+    """continuum_constants = 'window': the affine (Voigt) constants scaled to the consolidated
+    window's constrained modulus, probed by a tenth more stress on its plate; the probe puts
+    the grains and the plate back (the same packing to the bit as without it)."""
+    comm = MPI.COMM_WORLD
+    base = CHAMBER_3D | {"substeps": 10, "relaxation": 0.3, "interface": "forces"}
+    model = CoupledPenetration(PenetrationParameters(**base, continuum_constants="window"), comm,
+                               log=lambda m: None)
+    probe = model.contact_stats["window_modulus"]
+    assert probe["strain"] < 0 and probe["stress_change"] < 0
+    assert probe["modulus"] == pytest.approx(probe["stress_change"] / probe["strain"])
+    # the grains relax where the affine estimate moves them with the mean strain: softer
+    assert 0.2 < probe["voigt_scale"] < 1.0
+    affine = CoupledPenetration(PenetrationParameters(**base), comm, log=lambda m: None)
+    assert np.array_equal(model.sim.p.x, affine.sim.p.x)
+    assert np.array_equal(model.sim.walls.point, affine.sim.walls.point)
+    scale = probe["voigt_scale"]
+    for name in ("lam", "mu", "kappa", "gamma"):
+        assert getattr(model.material_fe, name) == pytest.approx(scale * getattr(affine.material_fe, name))
+    history = model.run(steps=3)
+    assert np.isfinite([h["q_c"] for h in history]).all()
+    with pytest.raises(ValueError, match="3D chamber's top"):
+        PenetrationParameters(continuum_constants="window")

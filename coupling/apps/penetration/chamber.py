@@ -76,13 +76,14 @@ def packing_modulus(prm) -> float:
 
 
 def consolidate(sim, prm, log=print, controllers=(), height: float | None = None,
-                grains: int | None = None) -> dict:
+                grains: int | None = None, ratio=None) -> dict:
     """Dynamic relaxation under the surcharge (or the servo-controlled top plate among
     ``controllers``) to ``prm.consolidation_tol`` (the walls or the ghosts hold the sides and
     the bottom). ``height`` [m] of the specimen and its number of ``grains`` (for the log)
     default to the FREE particles' extent plus a diameter and their count (a `dem.
     DistributedSimulation`, whose particles no single rank holds, is given them). Returns
-    relax's record with the wall time."""
+    relax's record with the wall time. ``ratio``: the measure of equilibrium (`dem.relax`;
+    default PFC's mean-force ratio with controllers, else the unbalanced-force ratio)."""
     from dem import relax
 
     t0 = time.perf_counter()
@@ -102,7 +103,7 @@ def consolidate(sim, prm, log=print, controllers=(), height: float | None = None
 
     info = relax(sim, tol=prm.consolidation_tol, max_steps=prm.consolidation_max_steps,
                  damping=damping, controllers=controllers,
-                 ratio=mean_force_ratio if controllers else unbalanced_force_ratio)
+                 ratio=ratio or (mean_force_ratio if controllers else unbalanced_force_ratio))
     info["wall_time"] = time.perf_counter() - t0
     log(f"consolidated {grains} grains under {prm.vertical_stress / 1e3:.4g} kPa in "
         f"{info['steps']} steps ({info['wall_time']:.1f} s), unbalanced force ratio {info['ratio']:.2g}")

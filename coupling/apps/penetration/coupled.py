@@ -661,9 +661,55 @@ class CoupledPenetration:
                  "solid_fraction": phi, "kn": kn, "kt": kt}
         c = voigt_estimate(stats, float(np.mean(r)))
         c.pop("name")
+        if prm.continuum_constants == "window":
+            # the affine estimate scaled to the window's own constrained modulus (the same
+            # Poisson ratio and length): the continuum as stiff as the grains it replaces
+            measured = self._window_modulus()
+            scale = measured["modulus"] / (c["lam"] + 2 * c["mu"] + c["kappa"])
+            c = {k: scale * v for k, v in c.items()}
+            stats["window_modulus"] = measured | {"voigt_scale": scale}
+            self.log(f"window's constrained modulus {measured['modulus'] / 1e6:.4g} MPa in situ: "
+                     f"{scale:.3g} of the affine estimate")
         if prm.continuum_constants == "calibrated":
             c, stats["calibration"] = self._calibrated_constants()
         return MicropolarMaterial(**c, rho=prm.density * phi, j=0.4 * prm.radius**2), stats
+
+    def _window_modulus(self, increment: float = 0.1) -> dict:
+        """The consolidated window's constrained (oedometric) modulus [Pa] in situ: the top
+        plate's stress raised by ``increment`` of the vertical stress, the grains relaxed (the
+        band held: no lateral strain at its edge), then the change of the inner region's
+        vertical Love-Weber stress over its vertical strain (the least-squares slope of the
+        grains' vertical displacement against height there); the grains and the plate are
+        put back as they were. Loading, not unloading: the far field is pushed by the cone."""
+        from dataclasses import replace as with_target
+
+        prm, sim, n = self.prm, self.sim, self.n_grains
+        t0 = time.perf_counter()
+        saved, servo = sim.state_dict(), self.servos[0]
+        s0, x0 = self._window_stress()[2], sim.p.x[:n].copy()
+        z0 = x0[:, 2]
+        from dem.control import mean_force_ratio
+
+        probe = with_target(servo, target=servo.target + increment * prm.vertical_stress)
+
+        def balanced(s):
+            # in equilibrium (the grains' ratio) with the plate at its new stress (to 2 % of the
+            # increment): the grains start in equilibrium, the plate's stress does not
+            error = abs(probe.stress(s) - probe.target) / (0.02 * increment * prm.vertical_stress)
+            return max(mean_force_ratio(s), prm.consolidation_tol * error)
+
+        consolidate(sim, prm, lambda m: None, controllers=[probe], ratio=balanced)
+        s1, dz = self._window_stress()[2], sim.p.x[:n, 2] - z0
+        d, w, top = 2 * prm.radius, prm.window_half_width, float(z0.max())
+        inner = ((self.kinds == 0) & (np.abs(x0[:, :2]).max(axis=1) < w - d)
+                 & (z0 < top - 2 * d) & (z0 > -prm.window_depth + d))
+        strain = float(np.polyfit(z0[inner], dz[inner], 1)[0])
+        sim.load_state(saved)
+        if not strain < 0:
+            raise ValueError(f"the window did not compress under the probe (vertical strain {strain:.3g}): "
+                             "no constrained modulus to take the continuum's stiffness from")
+        return {"modulus": float((s1 - s0) / strain), "stress_change": float(s1 - s0), "strain": strain,
+                "seconds": time.perf_counter() - t0}
 
     def _geostatic_loads(self):
         """3D: gravity on the continuum and, on its side, the traction of the geostatic stress
