@@ -260,6 +260,7 @@ def worker(path: Path) -> None:
         out["split_s"] = {k: float(np.sum([t.get(k, 0.0) for t in model.step_timings]))
                           for k in model.step_timings[0]}
         out["calibration"] = model.contact_stats.get("calibration")
+        out["window_modulus"] = model.contact_stats.get("window_modulus")
         state = model.problem.state
         if state and "equivalent_plastic_strain" in state.committed:
             # how much of the continuum yielded by the end (quadrature points of this rank)
