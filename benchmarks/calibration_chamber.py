@@ -575,7 +575,7 @@ def plot(results: dict) -> None:
         ax.set_xlabel(f"q_c, filtered over {args.smooth * 1000:.0f} mm [kPa]")
         ax.set_ylabel("depth [cm]")
         ax.set_title(f"{bc}, sigma_v = {args.stress / 1e3:.0f} kPa, {len(r['full_dem']['runs'])} packings")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=6, loc="lower left")   # the profiles keep to the upper left and the right
     ax = axes[-1]
     for k, bc in enumerate(bcs):
         r = results["cases"][bc]
