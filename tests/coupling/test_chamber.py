@@ -192,7 +192,7 @@ def test_calibrated_continuum_takes_the_cell_tests_constants_and_angles():
 
 
 def test_continuum_choices_are_named():
-    with pytest.raises(ValueError, match="continuum_constants must be 'lattice' or 'calibrated'"):
+    with pytest.raises(ValueError, match="continuum_constants must be 'lattice', 'calibrated' or 'window'"):
         PenetrationParameters(continuum_constants="measured")
     with pytest.raises(ValueError, match="'micropolar_drucker_prager' needs vertical_stress > 0"):
         PenetrationParameters(dim=3, continuum="micropolar_drucker_prager")
