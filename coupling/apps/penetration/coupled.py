@@ -559,8 +559,7 @@ class CoupledPenetration:
         x, d = sim.p.x, 2 * prm.radius
         top = float(x[:n, ax].max())
         inner = np.zeros(sim.p.n, bool)
-        inner[:n] = ((self.kinds == 0) & (np.abs(x[:n, :dim - 1]).max(axis=1) < prm.window_half_width - d)
-                     & (x[:n, ax] < top - 2 * d) & (x[:n, ax] > -prm.window_depth + d))
+        inner[:n] = self._inner_grains(x[:n])
         if (inner[i] & inner[j]).sum() < 20:
             raise ValueError("the window holds fewer than 20 contacts between free grains away from "
                              "its edges: too small to take the continuum's initial stress from")
@@ -572,6 +571,14 @@ class CoupledPenetration:
         # height window_depth - 3 d put its vertical stress at 85 kPa for 104
         volume = (2 * (prm.window_half_width - d)) ** (dim - 1) * (top + prm.window_depth - 3 * d)
         return tuple(float(sigma[k, k] / volume) for k in range(dim))
+
+    def _inner_grains(self, x: np.ndarray) -> np.ndarray:
+        """(n,) mask of the free grains at ``x`` (n, 3) at least a diameter inside the window's
+        sides and base and two below its top: the region its stress and strain are read over."""
+        prm, dim, ax, d = self.prm, self.prm.dim, VERTICAL[self.prm.dim], 2 * self.prm.radius
+        top = float(x[:, ax].max())
+        return ((self.kinds == 0) & (np.abs(x[:, :dim - 1]).max(axis=1) < prm.window_half_width - d)
+                & (x[:, ax] < top - 2 * d) & (x[:, ax] > -prm.window_depth + d))
 
     def _continuum_material(self):
         """Micropolar constants and density of the settled packing (module docstring, 3.)."""
@@ -683,13 +690,12 @@ class CoupledPenetration:
         put back as they were. Loading, not unloading: the far field is pushed by the cone."""
         from dataclasses import replace as with_target
 
+        from dem.control import mean_force_ratio
+
         prm, sim, n = self.prm, self.sim, self.n_grains
         t0 = time.perf_counter()
         saved, servo = sim.state_dict(), self.servos[0]
         s0, x0 = self._window_stress()[2], sim.p.x[:n].copy()
-        z0 = x0[:, 2]
-        from dem.control import mean_force_ratio
-
         probe = with_target(servo, target=servo.target + increment * prm.vertical_stress)
 
         def balanced(s):
@@ -699,11 +705,9 @@ class CoupledPenetration:
             return max(mean_force_ratio(s), prm.consolidation_tol * error)
 
         consolidate(sim, prm, lambda m: None, controllers=[probe], ratio=balanced)
-        s1, dz = self._window_stress()[2], sim.p.x[:n, 2] - z0
-        d, w, top = 2 * prm.radius, prm.window_half_width, float(z0.max())
-        inner = ((self.kinds == 0) & (np.abs(x0[:, :2]).max(axis=1) < w - d)
-                 & (z0 < top - 2 * d) & (z0 > -prm.window_depth + d))
-        strain = float(np.polyfit(z0[inner], dz[inner], 1)[0])
+        s1, dz = self._window_stress()[2], sim.p.x[:n, 2] - x0[:, 2]
+        inner = self._inner_grains(x0)
+        strain = float(np.polyfit(x0[inner, 2], dz[inner], 1)[0])
         sim.load_state(saved)
         if not strain < 0:
             raise ValueError(f"the window did not compress under the probe (vertical strain {strain:.3g}): "
