@@ -93,12 +93,13 @@ parser.add_argument("--continuum", nargs="+", default=None,
                     choices=["micropolar", "micropolar_drucker_prager"],
                     help="the coupled cases' continuum models (each with every window)")
 parser.add_argument("--constants", nargs="+", default=None,
-                    choices=["lattice", "calibrated", "window"],
+                    choices=["lattice", "calibrated", "window", "window_isotropic"],
                     help="where the coupled cases' continuum constants come from (each with every "
                          "model and window): the lattice estimate, element tests on a periodic "
                          "cell of the grains at the window's stress (with the plastic model also "
                          "its friction and dilatancy angles), or (3D) the lattice estimate scaled to "
-                         "the window's constrained modulus probed in situ")
+                         "the window's constrained modulus probed in situ (window_isotropic: both "
+                         "isotropic constants from that probe)")
 parser.add_argument("--hardening", type=float, nargs="+", default=[0.0],
                     help="the Drucker-Prager cases' hardening of the cohesion [Pa per unit equivalent plastic "
                          "strain], each with every plastic case (0: perfectly plastic; a window driven by its "
@@ -362,7 +363,7 @@ def seed_reference(bc: str, seeds: list[int]) -> None:
     args.reuse = True
 
 
-CONSTANTS_TAGS = {"lattice": "", "calibrated": "_cal", "window": "_win"}
+CONSTANTS_TAGS = {"lattice": "", "calibrated": "_cal", "window": "_win", "window_isotropic": "_wiso"}
 
 
 def case_label(case: dict) -> str:

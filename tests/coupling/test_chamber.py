@@ -192,7 +192,8 @@ def test_calibrated_continuum_takes_the_cell_tests_constants_and_angles():
 
 
 def test_continuum_choices_are_named():
-    with pytest.raises(ValueError, match="continuum_constants must be 'lattice', 'calibrated' or 'window'"):
+    with pytest.raises(ValueError, match="continuum_constants must be 'lattice', 'calibrated', "
+                                         "'window' or 'window_isotropic'"):
         PenetrationParameters(continuum_constants="measured")
     with pytest.raises(ValueError, match="'micropolar_drucker_prager' needs vertical_stress > 0"):
         PenetrationParameters(dim=3, continuum="micropolar_drucker_prager")
@@ -239,20 +240,27 @@ def test_force_exchange_is_named():
         PenetrationParameters(dim=3, interface="forces")
 
 
-def test_window_constants_probe_the_windows_modulus_in_situ():
+PROBED_3D = CHAMBER_3D | {"substeps": 10, "relaxation": 0.3, "interface": "forces"}
+
+
+@pytest.fixture(scope="module")
+def affine_3d():
+    """The 3D forces chamber with the affine (Voigt) constants, unprobed."""
+    return CoupledPenetration(PenetrationParameters(**PROBED_3D), MPI.COMM_WORLD, log=lambda m: None)
+
+
+def test_window_constants_probe_the_windows_modulus_in_situ(affine_3d):
     """continuum_constants = 'window': the affine (Voigt) constants scaled to the consolidated
     window's constrained modulus, probed by a tenth more stress on its plate; the probe puts
     the grains and the plate back (the same packing to the bit as without it)."""
-    comm = MPI.COMM_WORLD
-    base = CHAMBER_3D | {"substeps": 10, "relaxation": 0.3, "interface": "forces"}
-    model = CoupledPenetration(PenetrationParameters(**base, continuum_constants="window"), comm,
+    comm, affine = MPI.COMM_WORLD, affine_3d
+    model = CoupledPenetration(PenetrationParameters(**PROBED_3D, continuum_constants="window"), comm,
                                log=lambda m: None)
     probe = model.contact_stats["window_modulus"]
     assert probe["strain"] < 0 and probe["stress_change"] < 0
     assert probe["modulus"] == pytest.approx(probe["stress_change"] / probe["strain"])
     # the grains relax where the affine estimate moves them with the mean strain: softer
     assert 0.2 < probe["voigt_scale"] < 1.0
-    affine = CoupledPenetration(PenetrationParameters(**base), comm, log=lambda m: None)
     assert np.array_equal(model.sim.p.x, affine.sim.p.x)
     assert np.array_equal(model.sim.walls.point, affine.sim.walls.point)
     scale = probe["voigt_scale"]
@@ -262,3 +270,28 @@ def test_window_constants_probe_the_windows_modulus_in_situ():
     assert np.isfinite([h["q_c"] for h in history]).all()
     with pytest.raises(ValueError, match="3D chamber's top"):
         PenetrationParameters(continuum_constants="window")
+
+
+def test_window_isotropic_constants_take_the_lateral_stress_too(affine_3d):
+    """continuum_constants = 'window_isotropic': lam and the shear modulus both from the
+    probe (the band held: the window's sides barely strain, so lam is the lateral stress the
+    probe raised over its vertical strain and 2 G + lam its constrained modulus); mu, kappa
+    and the length keep the affine ratios. The grains' lateral stress follows the vertical
+    one far more than the affine Poisson ratio (~0.04) says."""
+    model = CoupledPenetration(PenetrationParameters(**PROBED_3D, continuum_constants="window_isotropic"),
+                               MPI.COMM_WORLD, log=lambda m: None)
+    probe, m, a = model.contact_stats["window_modulus"], model.material_fe, affine_3d.material_fe
+    # the band held, the sides barely strain; the fitted isotropic law gives back the
+    # stress changes the probe raised, vertical and lateral
+    ez, eh = probe["strain"], probe["lateral_strain"]
+    assert abs(eh) < 0.2 * abs(ez)
+    lam, g = probe["lam"], probe["shear_modulus"]
+    assert lam * (ez + 2 * eh) + 2 * g * ez == pytest.approx(probe["stress_change"], rel=0.02)
+    assert lam * (ez + 2 * eh) + 2 * g * eh == pytest.approx(probe["lateral_stress_change"], rel=0.02)
+    assert 0.2 < probe["lateral_ratio"] < 1.0
+    assert probe["lateral_ratio"] > 3 * a.lam / (a.lam + 2 * a.mu + a.kappa)
+    assert m.lam == probe["lam"]
+    assert 2 * m.mu + m.kappa == pytest.approx(2 * probe["shear_modulus"], rel=1e-12)
+    for name in ("mu", "kappa", "gamma"):
+        assert getattr(m, name) == pytest.approx(probe["voigt_scale"] * getattr(a, name), rel=1e-12)
+    assert np.array_equal(model.sim.p.x, affine_3d.sim.p.x)

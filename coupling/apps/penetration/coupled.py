@@ -668,15 +668,24 @@ class CoupledPenetration:
                  "solid_fraction": phi, "kn": kn, "kt": kt}
         c = voigt_estimate(stats, float(np.mean(r)))
         c.pop("name")
-        if prm.continuum_constants == "window":
-            # the affine estimate scaled to the window's own constrained modulus (the same
-            # Poisson ratio and length): the continuum as stiff as the grains it replaces
+        if prm.continuum_constants in ("window", "window_isotropic"):
             measured = self._window_modulus()
-            scale = measured["modulus"] / (c["lam"] + 2 * c["mu"] + c["kappa"])
-            c = {k: scale * v for k, v in c.items()}
+            shear = 2 * c["mu"] + c["kappa"]
+            if prm.continuum_constants == "window":
+                # the affine estimate scaled to the window's own constrained modulus (the same
+                # Poisson ratio and length): the continuum as stiff as the grains it replaces
+                scale = measured["modulus"] / (c["lam"] + shear)
+                c = {k: scale * v for k, v in c.items()}
+            else:
+                # both isotropic constants from the probe: lam mostly from the lateral stress
+                # it raised, 2 mu + kappa = 2 G from the rest of its response (the affine
+                # estimate's Poisson ratio, ~0.04, is not the grains': their lateral stress
+                # follows the vertical one at ~K0); mu : kappa and the length stay affine
+                scale = 2 * measured["shear_modulus"] / shear
+                c = {k: scale * v for k, v in c.items()} | {"lam": measured["lam"]}
             stats["window_modulus"] = measured | {"voigt_scale": scale}
-            self.log(f"window's constrained modulus {measured['modulus'] / 1e6:.4g} MPa in situ: "
-                     f"{scale:.3g} of the affine estimate")
+            self.log(f"window's constrained modulus {measured['modulus'] / 1e6:.4g} MPa in situ, lateral "
+                     f"ratio {measured['lateral_ratio']:.3g}: shear {scale:.3g} of the affine estimate")
         if prm.continuum_constants == "calibrated":
             c, stats["calibration"] = self._calibrated_constants()
         return MicropolarMaterial(**c, rho=prm.density * phi, j=0.4 * prm.radius**2), stats
@@ -695,7 +704,7 @@ class CoupledPenetration:
         prm, sim, n = self.prm, self.sim, self.n_grains
         t0 = time.perf_counter()
         saved, servo = sim.state_dict(), self.servos[0]
-        s0, x0 = self._window_stress()[2], sim.p.x[:n].copy()
+        s0, x0 = self._window_stress(), sim.p.x[:n].copy()
         probe = with_target(servo, target=servo.target + increment * prm.vertical_stress)
 
         def balanced(s):
@@ -705,14 +714,23 @@ class CoupledPenetration:
             return max(mean_force_ratio(s), prm.consolidation_tol * error)
 
         consolidate(sim, prm, lambda m: None, controllers=[probe], ratio=balanced)
-        s1, dz = self._window_stress()[2], sim.p.x[:n, 2] - x0[:, 2]
+        s1, du = np.array(self._window_stress()), sim.p.x[:n] - x0
         inner = self._inner_grains(x0)
-        strain = float(np.polyfit(x0[inner, 2], dz[inner], 1)[0])
+        # the inner region's strain: the least-squares affine fit of the grains' displacement
+        fit = np.linalg.lstsq(np.c_[np.ones(inner.sum()), x0[inner]], du[inner], rcond=None)[0]
+        eps = 0.5 * (fit[1:] + fit[1:].T)
         sim.load_state(saved)
+        strain, ds = float(eps[2, 2]), s1 - np.array(s0)
         if not strain < 0:
             raise ValueError(f"the window did not compress under the probe (vertical strain {strain:.3g}): "
                              "no constrained modulus to take the continuum's stiffness from")
-        return {"modulus": float((s1 - s0) / strain), "stress_change": float(s1 - s0), "strain": strain,
+        # isotropic ds_ii = lam tr(eps) + 2 G eps_ii (i = x, y, z), least squares in lam and G:
+        # with the band held the lateral strains are small and lam ~ ds_h / eps_zz
+        d = np.diag(eps)
+        (lam, g), *_ = np.linalg.lstsq(np.c_[np.full(3, d.sum()), 2 * d], ds, rcond=None)
+        return {"modulus": float(ds[2] / strain), "stress_change": float(ds[2]), "strain": strain,
+                "lateral_stress_change": float(ds[:2].mean()), "lateral_strain": float(d[:2].mean()),
+                "lateral_ratio": float(ds[:2].mean() / ds[2]), "lam": float(lam), "shear_modulus": float(g),
                 "seconds": time.perf_counter() - t0}
 
     def _geostatic_loads(self):
@@ -836,12 +854,46 @@ class CoupledPenetration:
         return self.history[-1]
 
     def _loose_step(self) -> dict:
-        """One FE step of the loose exchange: one DEM sub-cycle, the projection relaxed by
-        ``prm.relaxation``, one FE solve."""
-        prm, sim, iface, st = self.prm, self.sim, self.interface, self.stepper
-        p, ax, k = sim.p, VERTICAL[prm.dim], len(self.history)
-        n_u = iface.fields[0].prescribed.size
-        clock = time.perf_counter
+        """One FE step of the loose exchange: the grains' displacement projected onto the
+        prescribed nodes, relaxed by ``prm.relaxation``."""
+        iface, n_u = self.interface, self.interface.fields[0].prescribed.size
+
+        def exchange():
+            # only the displacement part is prescribed from the grains; phi from the FE itself
+            # (grain spins are not a displacement field)
+            old = iface.prescribed_values()
+            D = old.copy()
+            D[:n_u] = iface.project_displacement(self._grain_displacement())
+            iface.set_prescribed(old + self.prm.relaxation * (D - old))
+            return {}
+
+        return self._staggered_step(exchange)
+
+    def _forces_step(self) -> dict:
+        """One FE step of the force-carrying exchange (:mod:`coupling.reactions`): the free
+        grains' push on the ghosts averaged over the sub-cycle (time-averaged impulses, not the
+        last force: DESIGN's lesson from peers), its increment from the start handed to the FE
+        as nodal loads ``N^T f`` (relaxed by ``prm.relaxation``)."""
+        prm, sim, rows = self.prm, self.sim, self.ghost_local
+        total = np.zeros_like(self.f0)
+
+        def add_reactions():
+            total[:] += sim.p.force[rows, :prm.dim]
+
+        def exchange():
+            push = total / prm.substeps - self.f0
+            self.f_applied += prm.relaxation * (push - self.f_applied)
+            self.interface.apply(self.f_applied)
+            return {"ghost_push": float(np.abs(self.f_applied).sum())}
+
+        return self._staggered_step(exchange, hook=add_reactions)
+
+    def _staggered_step(self, exchange, hook=None) -> dict:
+        """One FE step of a staggered exchange: one DEM sub-cycle (``hook`` after each DEM
+        step) with the ghosts heading for the last FE state, ``exchange()`` hands the grains
+        to the FE (it returns extra history entries), one FE solve."""
+        prm, sim, st = self.prm, self.sim, self.stepper
+        k, clock = len(self.history), time.perf_counter
         t0 = clock()
         # ghosts head for the last converged FE state (a one-step lag, no extrapolation:
         # extrapolating the FE acceleration amplifies the grains' noise)
@@ -849,21 +901,14 @@ class CoupledPenetration:
         t_ghosts = clock() - t0
         st.predict()
         t_dem = clock()
-        ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0],
-                             g_next[0], self.dt_fe)
+        ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0], self.dt_fe)
         for servo in self.servos:   # the top plate's speed, held over the sub-cycle
             servo(sim)
         self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
-                               prm.velocity, ax, ghosts)
+                               prm.velocity, VERTICAL[prm.dim], ghosts, hook=hook)
         t1 = clock()
         t_dem = t1 - t_dem
-        u = self._grain_displacement()
-        # only the displacement part is prescribed from the grains; phi from the FE itself
-        # (grain spins are not a displacement field)
-        old = iface.prescribed_values()
-        D = old.copy()
-        D[:n_u] = iface.project_displacement(u)
-        iface.set_prescribed(old + prm.relaxation * (D - old))
+        extra = exchange()
         t2 = clock()
         st.solve()
         st.finish()
@@ -873,56 +918,9 @@ class CoupledPenetration:
         mismatch = self._check_ghosts(g_new, g_next, k)
         # the ghosts continue from where the grains saw them (no jump between FE steps)
         self.g_prev = g_next
-        f = p.force[self.pen_index] - self.clump_internal   # forces of the grains only
+        f = sim.p.force[self.pen_index] - self.clump_internal   # forces of the grains only
         self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
-                                        interface_mismatch=mismatch, dem_time=t_dem,
-                                        wall_time=clock() - t0))
-        self.step_timings.append({"ghost_motion": t_ghosts + t4 - t3, "dem": t_dem,
-                                  "projection": t2 - t1, "fe_solve": t3 - t2,
-                                  "total": self.history[-1]["wall_time"]})
-        return self.history[-1]
-
-    def _forces_step(self) -> dict:
-        """One FE step of the force-carrying exchange (:mod:`coupling.reactions`): one DEM
-        sub-cycle with the ghosts heading for the last FE state, the free grains' push on the
-        ghosts averaged over it (time-averaged impulses, not the last force: DESIGN's lesson
-        from peers), its increment from the start handed to the FE as nodal loads ``N^T f``
-        (relaxed by ``prm.relaxation``), one FE solve."""
-        prm, sim, st = self.prm, self.sim, self.stepper
-        p, ax, k, dim = sim.p, VERTICAL[prm.dim], len(self.history), prm.dim
-        clock = time.perf_counter
-        t0 = clock()
-        g_prev, g_next = self.g_prev, (self._ghost_motion() if self._g_now is None else self._g_now)
-        t_ghosts = clock() - t0
-        st.predict()
-        t_dem = clock()
-        ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0], self.dt_fe)
-        for servo in self.servos:
-            servo(sim)
-        rows, total = self.ghost_local, np.zeros_like(self.f0)
-
-        def add_reactions():
-            total[:] += p.force[rows, :dim]
-
-        self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
-                               prm.velocity, ax, ghosts, hook=add_reactions)
-        t1 = clock()
-        t_dem = t1 - t_dem
-        push = total / prm.substeps - self.f0
-        self.f_applied += prm.relaxation * (push - self.f_applied)
-        self.interface.apply(self.f_applied)
-        t2 = clock()
-        st.solve()
-        st.finish()
-        t3 = clock()
-        g_new = self._g_now = self._ghost_motion()
-        t4 = clock()
-        mismatch = self._check_ghosts(g_new, g_next, k)
-        self.g_prev = g_next
-        f = p.force[self.pen_index] - self.clump_internal
-        self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
-                                        interface_mismatch=mismatch, dem_time=t_dem,
-                                        ghost_push=float(np.abs(self.f_applied).sum()),
+                                        interface_mismatch=mismatch, dem_time=t_dem, **extra,
                                         wall_time=clock() - t0))
         self.step_timings.append({"ghost_motion": t_ghosts + t4 - t3, "dem": t_dem,
                                   "projection": t2 - t1, "fe_solve": t3 - t2,

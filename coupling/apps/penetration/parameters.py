@@ -93,7 +93,9 @@ class PenetrationParameters:
     # (coupling.calibration; with the Drucker-Prager model its peak friction and dilatancy
     # angles replace continuum_friction_deg / continuum_dilatancy_deg); "window" (3D chamber):
     # the affine estimate scaled to the consolidated window's constrained modulus, probed in
-    # situ by a tenth more stress on its plate (CoupledPenetration._window_modulus)
+    # situ by a tenth more stress on its plate (CoupledPenetration._window_modulus);
+    # "window_isotropic": both isotropic constants from that probe (lam from the lateral
+    # stress it raises, the shear modulus from the rest), not the affine Poisson ratio
     continuum_constants: str = "lattice"
     continuum_friction_deg: float = 30.0
     continuum_dilatancy_deg: float = 0.0
@@ -160,9 +162,9 @@ class PenetrationParameters:
 
     def _check_loading(self):
         """The chamber's loading (coupling.apps.penetration.chamber) and the continuum model."""
-        if self.continuum_constants == "window" and not (self.dim == 3 and self.vertical_stress > 0):
-            raise ValueError("continuum_constants = 'window' probes the window under the 3D chamber's top "
-                             "plate: it needs dim = 3 and vertical_stress > 0")
+        if self.continuum_constants.startswith("window") and not (self.dim == 3 and self.vertical_stress > 0):
+            raise ValueError(f"continuum_constants = {self.continuum_constants!r} probes the window under "
+                             "the 3D chamber's top plate: it needs dim = 3 and vertical_stress > 0")
         if self.interface == "forces" and self.dim == 3 and self.vertical_stress == 0:
             raise ValueError("interface = 'forces' needs the increment from a consolidated state "
                              "(2D, or vertical_stress > 0 in 3D): the 3D geostatic start "
@@ -174,8 +176,9 @@ class PenetrationParameters:
             raise ValueError("continuum = 'micropolar_drucker_prager' needs vertical_stress > 0 (its "
                              "yield function needs the total stress: a uniform initial stress, the "
                              "consolidated chamber's; a free surface under gravity has none yet)")
-        if self.continuum_constants not in ("lattice", "calibrated", "window"):
-            raise ValueError(f"continuum_constants must be 'lattice', 'calibrated' or 'window', "
+        if self.continuum_constants not in ("lattice", "calibrated", "window", "window_isotropic"):
+            raise ValueError(f"continuum_constants must be 'lattice', 'calibrated', 'window' or "
+                             f"'window_isotropic', "
                              f"got {self.continuum_constants!r}")
         if not (0 <= self.continuum_friction_deg < 90):
             raise ValueError(f"continuum_friction_deg must lie in [0, 90), got {self.continuum_friction_deg!r}")

@@ -87,8 +87,9 @@ class ContinuumModel:
     scaled by the window's coordination) or ``calibrated`` (element tests on a periodic cell
     of the grains at the window's mean stress, :mod:`coupling.calibration`; its peak friction
     and dilatancy angles then replace ``friction_deg`` and ``dilatancy_deg``); 3D: ``lattice``
-    (the affine estimate of the settled contacts), ``calibrated`` or ``window`` (that estimate
-    scaled to the window's constrained modulus, probed in situ). ``hardening``
+    (the affine estimate of the settled contacts), ``calibrated``, ``window`` (that estimate
+    scaled to the window's constrained modulus, probed in situ) or ``window_isotropic`` (lam
+    and the shear modulus both from that probe: its lateral stress too). ``hardening``
     [Pa]: the cone's cohesion grows by it per unit equivalent plastic strain (perfect
     plasticity lets a displacement-driven window drift with its grains)."""
 
