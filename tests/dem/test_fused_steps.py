@@ -1,0 +1,91 @@
+"""`Simulation.step` without a hook runs its steps in one numba call (`dem.integrate._steps`)
+between neighbour builds and checks; with a hook it goes through the Python loop. Both
+must give the same bits: positions, velocities, forces, contact history, walls and every
+ledger term, across neighbour rebuilds, blow-up checks, a moving wall and external forces."""
+
+import numpy as np
+import pytest
+
+import dem
+from dem import integrate
+from dem.packing import lattice_packing
+
+
+def scene(dim, seed=2):
+    """Grains dropped loosely into a box with a moving side wall: contacts open and close,
+    the list is rebuilt, the wall does work."""
+    rng = np.random.default_rng(seed)
+    if dim == 3:
+        g = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        x = (g + 0.5) * 2.3e-3 + rng.uniform(-1e-4, 1e-4, g.shape)
+        mats = [dem.ContactMaterial(E=2.9e7, nu=0.25, density=2650.0, friction=0.5,
+                                    restitution=0.5, limit_force=True, rolling_friction=0.05),
+                dem.ContactMaterial(E=5e7, nu=0.3, density=2650.0, friction=0.3,
+                                    friction_dynamic=0.2, restitution=0.7)]
+        walls = dem.box_walls((0, 0, 0), (14e-3,) * 3)
+        r, gravity = 1e-3, (0, 0, -9.81)
+    else:
+        x, _ = lattice_packing((0, 0), (0.03, 0.03), 1.7e-3, kind="hex")
+        x[:, :2] += rng.uniform(-5e-5, 5e-5, (len(x), 2))
+        mats = [dem.ContactMaterial(E=1e8, nu=0.25, density=2650.0, friction=0.5,
+                                    restitution=0.5, law="linear", kn=2e5, kt=1e5)]
+        walls = dem.box_walls((0, 0, 0), (0.03, 0.03, 0), dim=2)
+        r, gravity = 1.5e-3, (0, -9.81, 0)
+    walls[1] = dem.PlaneWall(walls[1].point, walls[1].normal, velocity=(-0.5, 0, 0))
+    v = rng.normal(0, 0.05, x.shape)
+    if dim == 2:
+        v[:, 2] = 0.0
+    p = dem.Particles.spheres(x, r, 2650.0, dim=dim, v=v,
+                              material=rng.integers(0, len(mats), len(x)))
+    sim = dem.Simulation(p, mats, walls, gravity, check_every=37, skin=0.05 * r)
+    f = np.zeros(3)
+    f[dim - 1] = -1e-4
+    sim.set_external_force(np.arange(0, p.n, 5), f)
+    return sim
+
+
+def same(a, b):
+    da, db = a.state_dict(), b.state_dict()
+    assert da.keys() == db.keys()
+    for k in da:
+        assert np.array_equal(np.asarray(da[k]), np.asarray(db[k])), k
+    assert a.energy() == b.energy()
+
+
+def counted(monkeypatch):
+    """Count the calls of the fused loop (it must be the path taken without a hook)."""
+    calls = []
+    kernel = integrate._steps
+
+    def wrapper(*args):
+        calls.append(args[0])
+        return kernel(*args)
+
+    monkeypatch.setattr(integrate, "_steps", wrapper)
+    return calls
+
+
+@pytest.mark.parametrize("dim", [3, 2])
+def test_fused_steps_equal_python_loop(dim, monkeypatch):
+    calls = counted(monkeypatch)
+    fused, loop = scene(dim), scene(dim)
+    for n in (1, 150, 63, 2):
+        assert fused.step(n) == n
+        assert loop.step(n, hook=lambda: False) == n
+        same(fused, loop)
+    assert fused.nl.builds > 2  # rebuilds inside calls
+    assert len(calls) > fused.nl.builds
+    assert fused.energy()["work_external"] != 0.0 and fused.energy()["work_walls"] != 0.0
+
+
+def test_fused_steps_after_outside_writes():
+    """Forces, history and wall velocities written between calls are taken up alike."""
+    fused, loop = scene(3), scene(3)
+    for sim in (fused, loop):
+        sim.step(40, hook=None if sim is fused else (lambda: False))
+        sim.walls.velocity[0] = (0.0, 0.0, 0.02)
+        sim.nl.hist[:, :3] *= 0.5
+        sim.history_replaced()
+    fused.step(90)
+    loop.step(90, hook=lambda: False)
+    same(fused, loop)
