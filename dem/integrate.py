@@ -40,6 +40,9 @@ from dem.walls import WallSet
 __all__ = ["Simulation"]
 
 _NO_L, _NO_O, _EMPTY = np.zeros((3, 3)), np.zeros(3), np.zeros((0, 3))
+_NO_PK = (np.zeros(0, np.int64), np.zeros(0, np.int64), _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY,
+          np.zeros(0, np.bool_), np.zeros((1, 1, 2)))
+"""`dem.prescribed.Prescribed.pack` of no motion (the types `_steps` takes)."""
 
 # The kernels below are written out in full: per-particle helper functions (inlined by
 # numba's IR inliner or left to LLVM) made these loops several times slower.
@@ -357,137 +360,6 @@ def _branch_force_sums(pi, pj, img, out, x, h, x0, h0, hinv, bf, bf0):
                     bf0[q, a, c] += b0[a] * f
 
 
-# The fused stepping loop: `Simulation.step` without a hook, prescribed motions, damping,
-# GHOST rows or a periodic cell, on the serial drivers, runs its steps here between two
-# neighbour builds and checks, one numba call instead of about ten dispatches and the
-# Python bookkeeping of each step (the fixed cost of a step: 512 spheres without contacts,
-# see benchmarks/dem_throughput.py). The same kernels in the same order as the Python loop
-# of `step`, so the same bits; the ledger's additions are written out as `_book` does them.
-
-LED_KEYS = ("dissipated", "friction", "walls", "gravity", "external")
-"""The ledger terms `_steps` adds to, in its array's order (after time, elastic, spring and
-the pending drift's four values: `Simulation._fused`)."""
-
-
-@njit(cache=True)
-def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g,
-           h, dt, x0, hit, radius, material, table, start, pj32, live, hist, slip, etan, wi,
-           ww, wp, wn, wu, wcol, whist, wslip, wetan, wf, wf_prev, wp_at, wforce, wp0, skin,
-           ext, erows, ef, ex0, st, ist):
-    """Steps s, s + 1, ... of a `Simulation.step` call of n steps, until n are done, a
-    blow-up check is due (after the step that ends on a multiple of check_every: its second
-    half-kick is `_kick`, the next drift is left to the next call) or the neighbour list
-    needs a rebuild before a force pass (then that step's drift is done and pending, and
-    the caller does the rest of the step). Pairs over the compact layout (start, pj32,
-    live: `dem.forces.pair_layout`), walls (points wp advanced by dt wu, resultants wf,
-    last ones wf_prev, points at the last pass wp_at, wforce = the walls' force rows),
-    external forces if ext (rows erows, forces ef, positions at the last pass ex0).
-    st (12,) float: time, elastic, spring, the pending drift's works and squared
-    displacement (4), the ledger terms of LED_KEYS; ist (3,) int: step count, pending flag,
-    steps done (out). x0, wp0: the neighbour list's build positions; skin [m]."""
-    nw = wp.shape[0]
-    res = np.empty(8)
-    lg = np.zeros((3, 3))
-    org = np.zeros(3)
-    nsteps = ist[0]
-    pend = ist[1]
-    done = 0
-    wc0 = st[3]
-    we0 = st[4]
-    wd0 = st[5]
-    d2 = st[6]
-    while s < n:
-        if pend == 0:
-            wc0, we0, wd0, d2 = _drift(x, v, omega, force, torque, fe, fd, td, mass,
-                                       inertia, kind, g, h, dt, 0, lg, org, x0, hit)
-            pend = 1
-        # `NeighbourList.needs_rebuild` at the walls' points after this step's advance
-        d = math.sqrt(d2)
-        if nw:
-            dw2 = 0.0
-            for w in range(nw):
-                a0 = (wp[w, 0] + dt * wu[w, 0]) - wp0[w, 0]
-                a1 = (wp[w, 1] + dt * wu[w, 1]) - wp0[w, 1]
-                a2 = (wp[w, 2] + dt * wu[w, 2]) - wp0[w, 2]
-                dw2 = max(dw2, a0 * a0 + a1 * a1 + a2 * a2)
-            d += math.sqrt(dw2)
-        if d > 0.5 * skin:
-            break
-        for w in range(nw):
-            for c in range(3):
-                wp[w, c] += dt * wu[w, c]
-                wf_prev[w, c] = wf[w, c]
-                wf_prev[w, 3 + c] = wf[w, 3 + c]
-                wf_prev[w, 6 + c] = wf[w, 6 + c]
-                wf[w, c] = wf[w, 3 + c] = wf[w, 6 + c] = 0.0
-        e1, s1 = _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table,
-                           hist, slip, etan, dt, h, force, torque, fe, fd, td, hit)
-        e2 = s2 = 0.0
-        if wi.shape[0]:
-            e2, s2 = _wall_all(wi, ww, x, v, omega, radius, mass, material, wp, wn, wu, wcol,
-                               table, whist, wslip, wetan, dt, h, force, torque, fe, fd, td,
-                               wf, hit)
-        for w in range(nw):
-            for c in range(3):
-                wforce[w, c] = wf[w, c]
-        if ext:
-            _add_external(erows, ef, force, hit)
-        e = e1 + e2
-        es = s1 + s2
-        final = s == n - 1 or (nsteps + 1) % check_every == 0
-        if final:
-            wc1, we1, wd1, wg = _kick(v, omega, force, torque, fe, fd, td, mass, inertia, kind,
-                                      g, h, hit)
-            pend = 0
-        else:
-            _kick_drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, dt,
-                        0, lg, org, x0, hit, res)
-            wc1 = res[0]
-            we1 = res[1]
-            wd1 = res[2]
-            wg = res[3]
-        # `Simulation._book` without ghosts or a cell (their zeros added as it adds them)
-        wc = wc0 + wc1
-        we = we0 + we1
-        wd = wd0 + wd1
-        www = wwe = wwd = 0.0
-        if nw:
-            www, wwe, wwd = _wall_work(wf_prev, wf, wp_at, wp)
-            for w in range(nw):
-                for c in range(3):
-                    wp_at[w, c] = wp[w, c]
-        contact = wc + 0.0 + www - 0.0
-        if ext:
-            wext = _external_work(erows, ef, x, ex0)
-            contact -= wext
-            st[11] += wext
-        dissipated = -(contact - (we + 0.0 + wwe - 0.0)) - (es - st[2])
-        damping = -(wd + 0.0 + wwd - 0.0)
-        st[7] += dissipated
-        st[8] += dissipated - damping
-        st[9] -= www
-        st[10] += wg
-        st[1] = e
-        st[2] = es
-        st[0] += dt
-        nsteps += 1
-        s += 1
-        done += 1
-        if final:
-            break
-        wc0 = res[4]
-        we0 = res[5]
-        wd0 = res[6]
-        d2 = res[7]
-    st[3] = wc0
-    st[4] = we0
-    st[5] = wd0
-    st[6] = d2
-    ist[0] = nsteps
-    ist[1] = pend
-    ist[2] = done
-
-
 _STATE_KEYS = ("x", "v", "omega", "radius", "mass", "inertia", "material", "kind", "force",
                "torque")
 
@@ -565,6 +437,173 @@ def _damp(v, omega, mass, inertia, kind, decay):
             v[i, c] *= decay
             omega[i, c] *= decay
     return (1.0 - decay * decay) * ke
+
+
+# The fused stepping loop: `Simulation.step` without a hook, damping or a periodic cell, on
+# the serial drivers, runs its steps here between two
+# neighbour builds and checks, one numba call instead of about ten dispatches and the
+# Python bookkeeping of each step (the fixed cost of a step: 512 spheres without contacts,
+# see benchmarks/dem_throughput.py). The same kernels in the same order as the Python loop
+# of `step`, so the same bits; the ledger's additions are written out as `_book` does them.
+
+@njit(cache=True)
+def _walls_moved2(wp, wu, wp0, dt):
+    """Largest squared displacement [m^2] of the wall points wp advanced by dt wu from wp0
+    (`dem.neighbours._max_disp2` after `WallSet.advance`, to the bit)."""
+    d2 = 0.0
+    for w in range(wp.shape[0]):
+        a0 = (wp[w, 0] + dt * wu[w, 0]) - wp0[w, 0]
+        a1 = (wp[w, 1] + dt * wu[w, 1]) - wp0[w, 1]
+        a2 = (wp[w, 2] + dt * wu[w, 2]) - wp0[w, 2]
+        d2 = max(d2, a0 * a0 + a1 * a1 + a2 * a2)
+    return d2
+
+
+@njit(cache=True)
+def _wall_pass(wi, ww, x, v, omega, radius, mass, material, wp, wn, wu, wcol, table, whist,
+               wslip, wetan, dt, h, force, torque, fe, fd, td, wf, wf_prev, wforce, hit):
+    """A step's walls as `Simulation.step` and `dem.forces.wall_forces` run them serially:
+    points advanced by dt wu, the resultants wf kept in wf_prev, the new ones into wf and
+    their forces into wforce. Returns (elastic, spring) [J]."""
+    for w in range(wp.shape[0]):
+        for c in range(3):
+            wp[w, c] += dt * wu[w, c]
+    wf_prev[:] = wf
+    wf[:] = 0.0
+    e = es = 0.0
+    if wi.shape[0]:
+        e, es = _wall_all(wi, ww, x, v, omega, radius, mass, material, wp, wn, wu, wcol,
+                          table, whist, wslip, wetan, dt, h, force, torque, fe, fd, td, wf,
+                          hit)
+    wforce[:] = wf[:, :3]
+    return e, es
+
+
+LED_KEYS = ("dissipated", "friction", "walls", "gravity", "external", "ghosts")
+"""The ledger terms `_steps` adds to, in its array's order (after time, elastic, spring and
+the pending drift's four values: `Simulation._fused`)."""
+
+
+@njit(cache=True)
+def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g,
+           h, dt, x0, hit, radius, material, table, start, pj32, live, hist, slip, etan, wi,
+           ww, wp, wn, wu, wcol, whist, wslip, wetan, wf, wf_prev, wp_at, wforce, wp0, skin,
+           ext, erows, ef, ex0, presc, pr_rows, pr_group, pr_base, pr_a, pr_b, pr_vel, pr_om,
+           pr_setom, pr_coef, gh, gprev, gnow, xg_at, xg_now, st, ist):
+    """Steps s, s + 1, ... of a `Simulation.step` call of n steps, until n are done, a
+    blow-up check is due (after the step that ends on a multiple of check_every: its second
+    half-kick is `_kick`, the next drift is left to the next call) or the neighbour list
+    needs a rebuild before a force pass (then that step's drift is done and pending, and
+    the caller does the rest of the step). Pairs over the compact layout (start, pj32,
+    live: `dem.forces.pair_layout`), walls (points wp advanced by dt wu, resultants wf,
+    last ones wf_prev, points at the last pass wp_at, wforce = the walls' force rows),
+    external forces if ext (rows erows, forces ef, positions at the last pass ex0),
+    prescribed motions if presc (`dem.prescribed.Prescribed.pack`), the GHOST rows gh
+    (force rows of the last pass gprev, valid if ist[3], and of this one gnow (ng, 15);
+    positions at the last pass xg_at and at this one xg_now (ng, 3)). st (13,) float:
+    time, elastic, spring, the pending drift's works and squared displacement (4), the
+    ledger terms of LED_KEYS; ist (4,) int: step count, pending flag, steps done (out),
+    gprev valid. x0, wp0: the neighbour list's build positions; skin [m]."""
+    nw = wp.shape[0]
+    res = np.empty(8)
+    lg = np.zeros((3, 3))
+    org = np.zeros(3)
+    nsteps = ist[0]
+    pend = ist[1]
+    done = 0
+    wc0 = st[3]
+    we0 = st[4]
+    wd0 = st[5]
+    d2 = st[6]
+    ng = gh.shape[0]
+    while s < n:
+        if pend == 0:
+            if presc:
+                _prescribe(s, pr_rows, pr_group, pr_base, pr_a, pr_b, pr_vel, pr_om, pr_setom,
+                           pr_coef, x, v, omega)
+            if ng and ist[3] == 0:  # (else the last step's: the kick keeps forces)
+                _gather_ghosts(gh, force, torque, fe, fd, td, gprev)
+                ist[3] = 1
+            wc0, we0, wd0, d2 = _drift(x, v, omega, force, torque, fe, fd, td, mass,
+                                       inertia, kind, g, h, dt, 0, lg, org, x0, hit)
+            pend = 1
+        # `NeighbourList.needs_rebuild` at the walls' points after this step's advance
+        d = math.sqrt(d2)
+        if nw:
+            d += math.sqrt(_walls_moved2(wp, wu, wp0, dt))
+        if d > 0.5 * skin:
+            break
+        e1, s1 = _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table,
+                           hist, slip, etan, dt, h, force, torque, fe, fd, td, hit)
+        e2, s2 = _wall_pass(wi, ww, x, v, omega, radius, mass, material, wp, wn, wu, wcol,
+                            table, whist, wslip, wetan, dt, h, force, torque, fe, fd, td, wf,
+                            wf_prev, wforce, hit)
+        if ext:
+            _add_external(erows, ef, force, hit)
+        if ng:
+            _gather_ghosts(gh, force, torque, fe, fd, td, gnow)
+            _gather_rows(gh, x, xg_now)
+        e = e1 + e2
+        es = s1 + s2
+        final = s == n - 1 or (nsteps + 1) % check_every == 0
+        if final:
+            wc1, we1, wd1, wg = _kick(v, omega, force, torque, fe, fd, td, mass, inertia, kind,
+                                      g, h, hit)
+            pend = 0
+        else:
+            if presc:  # the next step's motions, before its drift
+                _prescribe(s + 1, pr_rows, pr_group, pr_base, pr_a, pr_b, pr_vel, pr_om,
+                           pr_setom, pr_coef, x, v, omega)
+            _kick_drift(x, v, omega, force, torque, fe, fd, td, mass, inertia, kind, g, h, dt,
+                        0, lg, org, x0, hit, res)
+            wc1 = res[0]
+            we1 = res[1]
+            wd1 = res[2]
+            wg = res[3]
+        # `Simulation._book` without a cell (its zeros added as it adds them)
+        wc = wc0 + wc1
+        we = we0 + we1
+        wd = wd0 + wd1
+        wgh = wge = wgd = 0.0
+        if ng:
+            wgh, wge, wgd = _ghost_work(gprev, gnow, xg_at, xg_now, omega, gh, dt)
+            gprev[:] = gnow
+            xg_at[:] = xg_now
+        www = wwe = wwd = 0.0
+        if nw:
+            www, wwe, wwd = _wall_work(wf_prev, wf, wp_at, wp)
+            wp_at[:] = wp
+        contact = wc + wgh + www - 0.0
+        if ext:
+            wext = _external_work(erows, ef, x, ex0)
+            contact -= wext
+            st[11] += wext
+        dissipated = -(contact - (we + wge + wwe - 0.0)) - (es - st[2])
+        damping = -(wd + wgd + wwd - 0.0)
+        st[7] += dissipated
+        st[8] += dissipated - damping
+        st[9] -= www
+        st[10] += wg
+        st[12] -= wgh
+        st[1] = e
+        st[2] = es
+        st[0] += dt
+        nsteps += 1
+        s += 1
+        done += 1
+        if final:
+            break
+        wc0 = res[4]
+        we0 = res[5]
+        wd0 = res[6]
+        d2 = res[7]
+    st[3] = wc0
+    st[4] = we0
+    st[5] = wd0
+    st[6] = d2
+    ist[0] = nsteps
+    ist[1] = pend
+    ist[2] = done
 
 
 class Simulation:
@@ -884,11 +923,11 @@ class Simulation:
         n = int(n)
         pending = None  # (works of the old forces, largest squared displacement) of a drift
         gprev = None  # ghost rows of the forces the drift cleared
-        fused = hook is None and pk is None and decay is None and cell is None and not ghosts
+        fused = hook is None and decay is None and cell is None
         s = 0
         while s < n:
             if fused:  # as many steps as it can in one numba call (`_steps`)
-                k, pending = self._fused(s, n, pending)
+                k, pending, gprev = self._fused(s, n, pending, pk, gprev)
                 s += k
                 if k and self.nsteps % self.check_every == 0:
                     self._check()
@@ -947,48 +986,56 @@ class Simulation:
             self._check()
         return n
 
-    def _fused(self, s, n, pending):
-        """Steps s, s + 1, ... of a `step` call of n steps in `_steps` (no hook, prescribed
-        motion, damping, GHOST rows or cell: the caller checks), if the serial drivers are
-        the ones `_evaluate` would run. Returns (steps done, the pending drift's values or
-        None); (0, pending) if it did not apply."""
+    def _fused(self, s, n, pending, pk, gprev):
+        """Steps s, s + 1, ... of a `step` call of n steps in `_steps` (no hook, damping or
+        cell: the caller checks), if the serial drivers are the ones `_evaluate` would run.
+        pk: the packed prescribed motions or None; gprev: the GHOST rows' forces of the
+        last force pass (None: not gathered yet in this call). Returns (steps done, the
+        pending drift's values or None, gprev); (0, pending, gprev) if it did not apply."""
         p, nl, w = self.p, self.nl, self.walls
         if nl._x0 is None or nl._x0.shape != p.x.shape or (len(w) and nl._wp0 is None):
-            return 0, pending
+            return 0, pending, gprev
         if (p.n >= KD_PARALLEL_MIN or len(nl.pi) >= PARALLEL_MIN
                 or len(nl.wi) >= WALL_PARALLEL_MIN) and get_num_threads() > 1:
-            return 0, pending
+            return 0, pending, gprev
         lay = self._layout(s == 0)
         if lay is None:
             if len(nl.pi):  # not sorted by i: `pair_forces` takes the plain loop
-                return 0, pending
+                return 0, pending, gprev
             lay = (np.zeros(p.n + 1, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int8))
         led = self._led
         st = np.array([self.time, self._elastic, self._spring, 0.0, 0.0, 0.0, 0.0]
                       + [led[k] for k in LED_KEYS])
         if pending is not None:
             st[3:7] = pending
-        ist = np.array([self.nsteps, pending is not None, 0], np.int64)
+        ist = np.array([self.nsteps, pending is not None, 0, gprev is not None], np.int64)
         ext = self._ext is not None
         erows, ef, ex0 = self._ext if ext else (np.zeros(0, np.int64), _EMPTY, _EMPTY)
         nw = len(w)
         wp_at = np.array(self._at[1], float).reshape(nw, 3) if nw else _EMPTY
+        gh = self._ghosts
+        ng = len(gh)
+        gbuf = np.empty((ng, 15)) if gprev is None else np.array(gprev)
+        xg_at = np.array(self._at[0], float).reshape(ng, 3)
         _steps(s, n, self.check_every, p.x, p.v, p.omega, p.force, p.torque, self._fe,
                self._fd, self._td, p.mass, p.inertia, p.kind, self.gravity, 0.5 * self.dt,
                self.dt, nl._x0, self._hit, p.radius, p.material, self.table, lay[0], lay[1],
                lay[2], nl.hist, nl.slip, nl.etan, nl.wi, nl.ww, w.point, w.normal,
                w.velocity, w.table_columns(len(self.materials)), nl.whist, nl.wslip,
                nl.wetan, self._wf, self._wf_prev, wp_at, w.force,
-               nl._wp0 if nw else _EMPTY, nl.skin, ext, erows, ef, ex0, st, ist)
+               nl._wp0 if nw else _EMPTY, nl.skin, ext, erows, ef, ex0, pk is not None,
+               *(_NO_PK if pk is None else pk), gh, gbuf, np.empty((ng, 15)), xg_at,
+               np.empty((ng, 3)), st, ist)
         done = int(ist[2])
         self.time, self.nsteps = float(st[0]), int(ist[0])
         for q, k in enumerate(LED_KEYS):
             led[k] = float(st[7 + q])
         if done:
             self._elastic, self._spring = float(st[1]), float(st[2])
-            self._at = (self._at[0], wp_at if nw else self._at[1])
+            self._at = (xg_at if ng else self._at[0], wp_at if nw else self._at[1])
             self._zeroed = False
-        return done, (tuple(float(a) for a in st[3:7]) if ist[1] else None)
+        return (done, tuple(float(a) for a in st[3:7]) if ist[1] else None,
+                gbuf if ist[3] else None)
 
     def _x0_tracked(self):
         """Build positions of the neighbour list for the drift to measure displacements
