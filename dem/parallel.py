@@ -44,12 +44,20 @@ kinetic energy and works on its owner, a pair's elastic energy and the change of
 spring energy on the owner of its lower id, a wall contact on the particle's owner (a halo
 copy has no wall contacts, nor contacts with other copies: the local lists drop them).
 
+`DistributedSimulation.from_simulation` continues a serial `dem.Simulation` held, the same
+to the bit, on every rank (e.g. a coupled run's DE window consolidated serially, then pushed
+over the ranks): the first decomposition takes each rank's id block of its rows, with their
+forces and the contact history of the block's pairs and wall contacts, routed to the new
+owners of both particles as a migration routes it; the walls, time, external forces and the
+ledger's sums so far come along.
+
 mpi4py is imported lazily (``import dem`` stays free of MPI); every public method of
 `DistributedSimulation` is collective.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from dataclasses import dataclass
@@ -307,8 +315,8 @@ class _LocalSimulation(Simulation):
     wall contacts would book the owner's wall work twice), and its work is not booked as
     the work of a ghost (the owner books the particle's work)."""
 
-    def __init__(self, particles, halo, *args, **kwargs):
-        self.halo = halo
+    def __init__(self, particles, halo, kinds, *args, **kwargs):
+        self.halo, self.kinds = halo, kinds  # kinds: the particles' own (n,)
         super().__init__(particles, *args, check_every=1 << 62, **kwargs)
 
     def _ghost_index(self):
@@ -321,10 +329,7 @@ class _LocalSimulation(Simulation):
         """(n, 3) [m]: where the last force pass saw each row (the ledger's ghost positions
         for the owned GHOSTs, which a prescribed motion may have moved since; x for the
         rest)."""
-        x = self.p.x.copy()
-        if len(self._ghosts):
-            x[self._ghosts] = self._at[0]
-        return x
+        return _positions_at_last_pass(self)
 
     def set_positions_at_last_pass(self, x) -> None:
         """The inverse of `positions_at_last_pass` for a run built from carried rows: its
@@ -334,9 +339,72 @@ class _LocalSimulation(Simulation):
             self._at = (x[self._ghosts].copy(), self._at[1])
 
     def _prune(self, nl):
-        nl.keep_pairs(~(self.halo[nl.pi] & self.halo[nl.pj]))
+        keep = ~(self.halo[nl.pi] & self.halo[nl.pj])
+        if not self.prescribed_pairs:
+            # on the particles' own kinds: a halo copy of a FREE particle is GHOST here
+            keep &= (self.kinds[nl.pi] == FREE) | (self.kinds[nl.pj] == FREE)
+        nl.keep_pairs(keep)
         nl.keep_walls(~self.halo[nl.wi])
-        super()._prune(nl)
+        w = self.walls  # as `Simulation._prune` (an owned row has its own kind)
+        if len(nl.wi) and w.free_only.any():
+            nl.keep_walls(~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST)))
+
+
+def _positions_at_last_pass(s) -> np.ndarray:
+    """(n, 3) [m]: where the last force pass of the `Simulation` s saw each row (its
+    ledger's positions of the GHOST rows it books, which a prescribed motion may have
+    moved since; x for the rest)."""
+    x = s.p.x.copy()
+    if len(s._ghosts):
+        x[s._ghosts] = s._at[0]
+    return x
+
+
+def _particle_rows(s, idx, gid) -> np.ndarray:
+    """Rows (k, NCOL) of the rows ``idx`` (k,) of the `Simulation` s, global ids ``gid``."""
+    p = s.p
+    rows = np.empty((len(idx), NCOL))
+    rows[:, GID] = gid
+    rows[:, X], rows[:, V], rows[:, W] = p.x[idx], p.v[idx], p.omega[idx]
+    rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius[idx], p.mass[idx], p.inertia[idx]
+    rows[:, MAT], rows[:, KIND] = p.material[idx], p.kind[idx]
+    rows[:, F], rows[:, T] = p.force[idx], p.torque[idx]
+    rows[:, XAT] = _positions_at_last_pass(s)[idx]
+    fe, fd, td = s.force_parts()
+    rows[:, FE], rows[:, FD], rows[:, TD] = fe[idx], fd[idx], td[idx]
+    return rows
+
+
+def _history_rows(nl, mine, gid):
+    """The non-zero contact history of the neighbour list nl whose (first) particle is
+    ``mine`` (bool by row): (pairs' indices (k,), rows (k, HCOL)) and the same of the
+    wall contacts; rows keyed by global ids (``gid`` by row; pair: lower id first)."""
+
+    def entries(i, j, hist, slip, etan):
+        k = np.flatnonzero(mine[i] & ((hist != 0).any(axis=1) | (slip != 0) | (etan != 0)))
+        return k, np.column_stack([gid[i[k]], j[k], hist[k], slip[k], etan[k]])
+
+    return (entries(nl.pi, gid[nl.pj], nl.hist, nl.slip, nl.etan),
+            entries(nl.wi, nl.ww, nl.whist, nl.wslip, nl.wetan))
+
+
+def _differs_across_ranks(comm, sim):
+    """None if the `Simulation` sim has the same state on every rank of comm (a checksum
+    of its `state_dict` and external forces), else a ValueError naming the ranks."""
+    h = hashlib.sha256()
+    d = sim.state_dict()
+    d.update({"external.rows": sim.external_force()[0], "external.force":
+              sim.external_force()[1], "prescribed_pairs": sim.prescribed_pairs})
+    for k in sorted(d):
+        h.update(k.encode())
+        h.update(np.ascontiguousarray(d[k]).tobytes())
+    sums = comm.allgather(h.hexdigest())
+    if len(set(sums)) == 1:
+        return None
+    bad = [r for r, c in enumerate(sums) if c != sums[0]]
+    return ValueError(f"from_simulation: the serial state differs across the ranks (checksum "
+                      f"of sim.state_dict() on rank 0: {sums[0][:12]}, differs on ranks "
+                      f"{bad}); build or load the same Simulation on every rank")
 
 
 class _LocalMotion:
@@ -379,6 +447,10 @@ class DistributedSimulation:
             2 x skin, 6 decompositions instead of 11): halo width 2 r_max + halo_skin; a
             new decomposition when a particle would move more than halo_skin / 2 since
             the last one (one rank: never, there is no halo).
+        prescribed_pairs: as `dem.Simulation` (False: contacts of two particles that are not
+            FREE are skipped, judged on the particles' own kinds, a halo copy's included).
+
+    `from_simulation` continues a serial `dem.Simulation` held on every rank instead.
 
     As `dem.Simulation`: ``step(n, prescribed=..., decay=...)`` (motions by global id),
     `damping_removed`, `set_external_force` (by global id), `energy`, and `dem.relax` and
@@ -400,18 +472,72 @@ class DistributedSimulation:
     def __init__(self, particles, materials, walls=(), gravity=(0.0, 0.0, 0.0), dt=None, *,
                  comm=None, owner=None, safety=None, force_dt=False, v_max=None, skin=None,
                  halo_skin=None, domain=None, allow_overlap=False, blowup_factor=10.0,
-                 check_every=100, state_path=None):
+                 check_every=100, state_path=None, prescribed_pairs=True):
+        self._configure(comm, materials, WallSet(walls), gravity, domain, blowup_factor,
+                        check_every, state_path, prescribed_pairs)
+        chunk = self._set_up_on_root(particles, dt, safety, force_dt, v_max, skin, halo_skin,
+                                     allow_overlap, owner)
+        self._start(owner, chunk)
+
+    @classmethod
+    def from_simulation(cls, sim, comm=None, *, owner=None, skin=None, halo_skin=None,
+                        prescribed_pairs=None, blowup_factor=None, check_every=None,
+                        state_path=None) -> DistributedSimulation:
+        """The run that continues the serial `dem.Simulation` ``sim``, split over the ranks
+        of ``comm`` (collective).
+
+        ``sim`` must be on every rank with the same state to the bit (built the same way,
+        or restored by ``sim.load_state``; a checksum of its `Simulation.state_dict` and
+        external forces is compared across the ranks, ValueError naming the ranks that
+        differ). Global id = the serial row. Carried over: the particle rows with the
+        forces, force parts and positions at the last force pass, the contact history of
+        every pair and wall contact (to the new owners of both particles), the walls'
+        state and resultants, time, nsteps, dt, materials, gravity, domain box, the
+        external forces (`set_external_force` by global id) and ``prescribed_pairs``; the
+        energy ledger continues the serial one (its sums so far, ``initial`` and
+        ``damping_removed`` are booked on rank 0: `energy` then equals what ``sim.energy()``
+        would give after the same steps, to round-off). ``sim`` is left untouched.
+
+        owner, skin (default: the serial run's Verlet skin), halo_skin: as the constructor;
+        prescribed_pairs, blowup_factor, check_every: default the serial run's; state_path:
+        as the constructor. On one rank the run continues the serial one bit for bit.
+        """
+        comm = _mpi().COMM_WORLD if comm is None else comm
+        err = None
+        if not isinstance(sim, Simulation) or isinstance(sim, _LocalSimulation):
+            err = ValueError(f"from_simulation: sim must be a dem.Simulation, got "
+                             f"{type(sim).__name__}")
+        elif sim.cell is not None:
+            err = ValueError("from_simulation: a run in a periodic cell cannot be distributed")
+        _agree(comm, err)
+        _agree(comm, _differs_across_ranks(comm, sim))
+        self = cls.__new__(cls)
+        walls = WallSet(sim.walls.specs)
+        walls.load_state(sim.walls.state_dict())
+        self._configure(comm, sim.materials, walls, sim.gravity, sim.domain,
+                        sim.blowup_factor if blowup_factor is None else blowup_factor,
+                        sim.check_every if check_every is None else check_every, state_path,
+                        sim.prescribed_pairs if prescribed_pairs is None else prescribed_pairs)
+        chunk = self._set_up_from(sim, skin, halo_skin, owner)
+        self._start(owner, chunk, sim)
+        return self
+
+    def _configure(self, comm, materials, walls, gravity, domain, blowup_factor, check_every,
+                   state_path, prescribed_pairs):
         self.comm = _mpi().COMM_WORLD if comm is None else comm
         mats = [materials] if isinstance(materials, ContactMaterial) else list(materials)
         self.materials = mats
-        self.walls = WallSet(walls)
+        self.walls = walls
         self.gravity = np.asarray(gravity, float).reshape(3)
         self.domain = None if domain is None else np.asarray(domain, float).reshape(2, 3)
         self.blowup_factor, self.check_every = float(blowup_factor), int(check_every)
+        self.prescribed_pairs = bool(prescribed_pairs)
         self.state_path = state_path or os.path.join(tempfile.gettempdir(),
                                                   f"dem_last_good_state_{os.getpid()}.npz")
-        chunk = self._set_up_on_root(particles, dt, safety, force_dt, v_max, skin, halo_skin,
-                                     allow_overlap, owner)
+
+    def _start(self, owner, chunk, serial=None):
+        """Counters, ledger and the first decomposition of this rank's rows ``chunk``
+        (``serial``: the `Simulation` they come from, on every rank)."""
         self.owner = owner if owner is not None else self._bisection
         self.time, self.nsteps, self.decompositions, self.migrated = 0.0, 0, 0, 0
         # this rank's share of the ledger sums over the local runs before the present one,
@@ -424,10 +550,24 @@ class DistributedSimulation:
         self._wall_total = None  # `wall_forces` of the last force pass, once summed
         self.local, self._plan = None, None
         self._ext = None   # (global ids (k,) sorted, forces (k, 3) [N]) of set_external_force
-        self._decompose(chunk)
-        t = self._totals()
-        self._e0 = t["kinetic_translational"] + t["kinetic_rotational"] + t["elastic"]
-        self._shadow0 = t["shadow"]
+        if serial is not None:
+            rows, f = serial.external_force()
+            if len(rows):
+                order = np.argsort(rows)
+                self._ext = (np.asarray(rows, np.int64)[order], np.asarray(f, float)[order])
+        self._decompose(chunk, serial)
+        if serial is None:
+            t = self._totals()
+            self._e0 = t["kinetic_translational"] + t["kinetic_rotational"] + t["elastic"]
+            self._shadow0 = t["shadow"]
+        else:  # the serial ledger goes on: its sums so far on rank 0
+            led = serial.ledger()
+            self._e0, self._shadow0 = led["initial"], led["initial_shadow"]
+            self.time, self.nsteps = float(serial.time), int(serial.nsteps)
+            if self.comm.rank == 0:
+                for k in _SUMS:
+                    self._bank[k] += led[k]
+                self._damped += float(serial.damping_removed)
         self._good = None
         self._check()
 
@@ -475,32 +615,48 @@ class DistributedSimulation:
          self._bisection, self._kinds) = comm.bcast(info, root=0)
         return comm.scatter(blocks, root=0)
 
+    def _set_up_from(self, sim, skin, halo_skin, owner):
+        """`_set_up_on_root` for a serial run on every rank: its dt; this rank's id block of
+        its rows."""
+        comm, p, err = self.comm, sim.p, None
+        skin = sim.nl.skin if skin is None else float(skin)
+        halo_skin = 4.0 * skin if halo_skin is None else float(halo_skin)
+        if p.n == 0:
+            err = "from_simulation: sim has no particles"
+        elif not (skin >= 0 and halo_skin > 0):
+            err = f"skin must be >= 0 m and halo_skin > 0 m, got {skin!r}, {halo_skin!r}"
+        _agree(comm, err)
+        self.dt, self.rmax, self.skin, self.halo_skin = float(sim.dt), float(p.radius.max()), \
+            skin, halo_skin
+        self.ngid, self.dim, self._kinds = p.n, p.dim, p.kind.copy()
+        self._bisection = None if owner is not None else RecursiveBisection.from_points(
+            p.x, comm.size, _cut_axes(self.gravity))
+        idx = np.array_split(np.arange(p.n), comm.size)[comm.rank]
+        return _particle_rows(sim, idx, idx)
+
+    def _serial_history(self, sim, rows, new):
+        """The contact history of the serial run ``sim`` at the new owners of both
+        particles (collective): each rank sends the pairs whose lower id, and the wall
+        contacts whose particle, is in its block ``rows`` (new owners ``new``)."""
+        comm, nl = self.comm, sim.nl
+        owner_of = np.concatenate(comm.allgather(new)) if comm.size > 1 else new  # by id
+        mine = np.zeros(self.ngid, bool)
+        mine[rows[:, GID].astype(np.int64)] = True
+        (kp, pairs), (kw, wall) = _history_rows(nl, mine, np.arange(self.ngid))
+        d1, d2 = owner_of[nl.pi[kp]], owner_of[nl.pj[kp]]
+        two = d2 != d1  # both new owners of the pair need its history
+        pairs, pdest = np.vstack([pairs, pairs[two]]), np.r_[d1, d2[two]]
+        return (_exchange_rows(comm, pairs, pdest),
+                _exchange_rows(comm, wall, owner_of[nl.wi[kw]]))
+
     # ---------------------------------------------------------------- decomposition
     def _owned_rows(self):
         """Rows of the owned particles, and the authoritative contact history: non-zero
         entries of the pairs whose lower id is owned and of owned particles' wall contacts,
         with the pairs' local indices (k) for routing."""
-        s, own = self.local, self.owned
-        oi = np.flatnonzero(own)
-        p = s.p
-        rows = np.empty((len(oi), NCOL))
-        rows[:, GID] = self.gid[oi]
-        rows[:, X], rows[:, V], rows[:, W] = p.x[oi], p.v[oi], p.omega[oi]
-        rows[:, RAD], rows[:, MASS], rows[:, INER] = p.radius[oi], p.mass[oi], p.inertia[oi]
-        rows[:, MAT], rows[:, KIND] = p.material[oi], p.kind[oi]
-        rows[:, F], rows[:, T] = p.force[oi], p.torque[oi]
-        rows[:, XAT] = s.positions_at_last_pass()[oi]
-        fe, fd, td = s.force_parts()
-        rows[:, FE], rows[:, FD], rows[:, TD] = fe[oi], fd[oi], td[oi]
-        nl = s.nl
-
-        def entries(i, j, hist, slip, etan):
-            k = np.flatnonzero(own[i] & ((hist != 0).any(axis=1) | (slip != 0) | (etan != 0)))
-            return k, np.column_stack([self.gid[i[k]], j[k], hist[k], slip[k], etan[k]])
-
-        pairs = entries(nl.pi, self.gid[nl.pj], nl.hist, nl.slip, nl.etan)
-        wall = entries(nl.wi, nl.ww, nl.whist, nl.wslip, nl.wetan)
-        return oi, rows, pairs, wall
+        oi = np.flatnonzero(self.owned)
+        pairs, wall = _history_rows(self.local.nl, self.owned, self.gid)
+        return oi, _particle_rows(self.local, oi, self.gid[oi]), pairs, wall
 
     def _new_owners(self, x):
         ranks = np.asarray(self.owner(x))
@@ -512,13 +668,19 @@ class DistributedSimulation:
         _agree(self.comm, err)
         return ranks.astype(np.int64)
 
-    def _decompose(self, chunk=None):
-        """Collective: new owners, migration with history, halos, a new local run."""
+    def _decompose(self, chunk=None, serial=None):
+        """Collective: new owners, migration with history, halos, a new local run (``chunk``:
+        the first, of this rank's rows; ``serial``: the `Simulation` they continue, with
+        its forces, history and wall resultants)."""
         comm, me = self.comm, self.comm.rank
         empty = np.empty((0, HCOL))
+        wf = None
         if chunk is not None:
             rows, pairs, wall = chunk, empty, empty
             new = self._new_owners(rows[:, X])
+            if serial is not None:
+                pairs, wall = self._serial_history(serial, rows, new)
+                wf = serial.wall_resultants().copy()
         else:
             self._check_domain()
             if self._unchanged():  # the same owners and halos: the local run goes on
@@ -554,12 +716,13 @@ class DistributedSimulation:
             self.migrated += int(comm.allreduce(int((new != me).sum())))
         own = _exchange_rows(comm, rows, new)
         halo = self._halo_rows(own)
-        self._build_local(own, halo, pairs, wall, carried=chunk is None)
-        if chunk is None:
+        self._build_local(own, halo, pairs, wall, carried=wf is not None)
+        if wf is not None:
             has = me if self.local is not None else comm.size
             first = comm.allreduce(has, op=_mpi().MIN) if comm.size > 1 else has
             if self.local is not None:
                 self.local.wall_resultants()[:] = wf if me == first else 0.0
+                self.walls.force[:] = self.local.wall_resultants()[:, :3]  # the share
         self._unbooked0 = self._unbooked_spring()
         self._relisted = False  # the new local run built its lists now
         self.decompositions += 1
@@ -656,7 +819,7 @@ class DistributedSimulation:
         kind[is_halo & (kind == FREE)] = GHOST
         p = Particles(rows[:, X], rows[:, V], rows[:, W], rows[:, RAD], rows[:, MASS],
                       rows[:, INER], rows[:, MAT].astype(np.int32), kind, self.dim)
-        sim = self._local_run(p, is_halo)
+        sim = self._local_run(p, is_halo, self.gid)
         if carried:  # the constructor's force pass started from no history: replace it
             p.force[:], p.torque[:] = rows[:, F], rows[:, T]
             fe, fd, td = sim.force_parts()
@@ -666,15 +829,16 @@ class DistributedSimulation:
             sim.set_positions_at_last_pass(rows[:, XAT])
         self._install_external(included=carried)
 
-    def _local_run(self, p, is_halo):
-        """A `_LocalSimulation` of p (halo copies ``is_halo``) with the walls as they are,
-        installed as ``self.local``."""
+    def _local_run(self, p, is_halo, gid):
+        """A `_LocalSimulation` of p (halo copies ``is_halo``, global ids ``gid``) with the
+        walls as they are, installed as ``self.local``."""
         w = self.walls
         specs = [PlaneWall(tuple(w.point[k]), tuple(w.normal[k]), tuple(w.velocity[k]),
                            int(w.material[k]), bool(w.rigid[k]), bool(w.free_only[k]))
                  for k in range(len(w))]
-        sim = _LocalSimulation(p, is_halo, self.materials, specs, self.gravity, self.dt,
-                               force_dt=True, skin=self.skin, allow_overlap=True)
+        sim = _LocalSimulation(p, is_halo, self._kinds[gid], self.materials, specs,
+                               self.gravity, self.dt, force_dt=True, skin=self.skin,
+                               allow_overlap=True, prescribed_pairs=self.prescribed_pairs)
         # the local run continues the walls exactly (a spec re-normalises the normal)
         for a in ("point", "normal", "velocity", "force"):
             getattr(sim.walls, a)[:] = getattr(w, a)
@@ -950,9 +1114,10 @@ class DistributedSimulation:
         gids, f = self._ext
         rows = np.flatnonzero(self.owned & np.isin(self.gid, gids))
         mine = f[np.searchsorted(gids, self.gid[rows])]
-        if included:
-            s.p.force[rows] -= mine
+        carried = s.p.force[rows].copy() if included else None
         s.set_external_force(rows, mine)
+        if included:  # the carried bits (taking the force out and back in would round)
+            s.p.force[rows] = carried
 
     # ---------------------------------------------------------------- state (collective)
     def state_dict(self) -> dict:
@@ -1002,7 +1167,7 @@ class DistributedSimulation:
                     raise ValueError(f"state 'owned' has shape {halo.shape}, 'local.particles.x'"
                                      f" {p.n} rows")
                 try:
-                    self._local_run(p, halo).load_state(
+                    self._local_run(p, halo, np.asarray(d["gid"], np.int64)).load_state(
                         {k[6:]: v for k, v in d.items() if k.startswith("local.")})
                 except ValueError as e:
                     raise ValueError(f"local run: {e}") from None
@@ -1011,6 +1176,8 @@ class DistributedSimulation:
                 self.walls.load_state({k[6:]: v for k, v in d.items() if k.startswith("walls.")})
         except (KeyError, ValueError) as e:
             err = e if isinstance(e, ValueError) else ValueError(f"state has no {e.args[0]!r}")
+        except IndexError:
+            err = ValueError(f"state 'gid' holds ids beyond this run's {self.ngid}")
         _agree(self.comm, err)
         self.gid, self.owned = np.array(d["gid"], np.int64), np.array(d["owned"], bool)
         self._xref = np.array(d["xref"], float).reshape(-1, 3)
