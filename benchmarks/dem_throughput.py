@@ -20,9 +20,13 @@ This benchmark shows how to:
   the `make demo` grains: R = 1.5 mm, kn = 2e5 N/m, kt = kn/2), N = 1k, 2k, 5k, settling
   under gravity from rest; one numba thread against LIGGGHTS on one process on the same
   3D lattices in the same invocation (interleaved repeats),
+- with ``--before DIR`` (a directory holding another version's ``dem`` package, e.g.
+  ``git archive <commit> dem | tar -x -C DIR``), the dense scenes and the fixed cost run
+  on that version too, in the same rounds (before, after, LIGGGHTS; interleaved repeats),
+  and their speed-up is recorded,
 - record the machine: CPU model and flags, the LLVM target numba compiles for.
 
-Run: ``python benchmarks/dem_throughput.py [--out DIR] [--scenes settle,dense]``;
+Run: ``python benchmarks/dem_throughput.py [--out DIR] [--scenes settle,dense] [--before DIR]``;
 ``GRANFE_SHORT=1``: N = 10,000 only for the settle scene, one repeat of the dense ones.
 """
 
@@ -267,9 +271,11 @@ def dense_worker(kind, n, repeats):
                           ke_end=sim.energy()["kinetic_translational"])))
 
 
-def run_dense_worker(kind, n, threads, repeats):
+def run_dense_worker(kind, n, threads, repeats, root=None):
+    """`dense_worker` in a subprocess, on the ``dem`` package under ``root`` (default: this
+    repository's)."""
     env = dict(os.environ, NUMBA_NUM_THREADS=str(threads))
-    root = str(Path(__file__).resolve().parents[1])
+    root = str(root or Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     out = subprocess.run([sys.executable, __file__, "--dense-worker", kind, str(n),
                           str(repeats)], env=env, check=True, capture_output=True, text=True,
@@ -338,20 +344,33 @@ def machine_info():
     return info
 
 
-def run_dense(res, P, work):
-    """Dense scenes: dem on one numba thread, LIGGGHTS on one process (3D), interleaved."""
+def _before_record(loops, now_loops, n):
+    """Loop times of the ``--before`` version and its speed-up to this one (medians)."""
+    mps = [n * DENSE_STEPS / t / 1e6 for t in loops]
+    return dict(loop_s=loops, mps_median=float(np.median(mps)), mps_best=max(mps),
+                speedup_median=float(np.median(loops) / np.median(now_loops)),
+                speedup_best=float(min(loops) / min(now_loops)))
+
+
+def run_dense(res, P, work, before=None):
+    """Dense scenes: dem on one numba thread, LIGGGHTS on one process (3D), interleaved;
+    with ``before`` (a directory holding another ``dem``) that version in the same rounds."""
     dense = dict(steps=DENSE_STEPS, repeats=DENSE_REPEATS, scenes={},
                  note="from rest: touching lattices settle under gravity for "
                       f"{DENSE_STEPS} steps; M particle-steps/s = N x steps / loop time, "
                       "JIT excluded; one numba thread (NUMBA_NUM_THREADS=1) and one "
-                      "LIGGGHTS process, repeats interleaved")
+                      "LIGGGHTS process, repeats interleaved"
+                      + ("" if before is None else "; dem_1thread_before: the --before "
+                         f"version ({before}) in the same rounds, before this one"))
     for kind in ("3d", "2d"):
         for n in DENSE_NS:
             key = f"{kind}_{n}"
             r = dict(kind=kind, N=n)
-            dem_loops, lig_loops = [], []
+            dem_loops, lig_loops, old_loops = [], [], []
             w = None
             for _ in range(DENSE_REPEATS):
+                if before is not None:
+                    old_loops += run_dense_worker(kind, n, 1, 1, before)["loops"]
                 w = run_dense_worker(kind, n, 1, 1)
                 dem_loops += w["loops"]
                 if kind == "3d":
@@ -365,6 +384,9 @@ def run_dense(res, P, work):
                                     neighbour_builds=w["builds"], ke_end=w["ke_end"])
             line = f"dense {key}: dem 1 thread {np.median(mps):.2f} M p-steps/s " \
                    f"(best {max(mps):.2f}), {w['contacts_end'] / n:.2f} contacts/particle"
+            if old_loops:
+                r["dem_1thread_before"] = _before_record(old_loops, dem_loops, n)
+                line += f"; before {r['dem_1thread_before']['mps_median']:.2f}"
             if lig_loops:
                 lm = [n * DENSE_STEPS / t / 1e6 for t in lig_loops]
                 r["liggghts_1proc"] = dict(loop_s=lig_loops, mps_median=float(np.median(lm)),
@@ -379,13 +401,24 @@ def run_dense(res, P, work):
                 r["liggghts_1proc"] = dict(source="liggghts binary not found here")
             print(line)
             dense["scenes"][key] = r
-    w = run_dense_worker("idle", IDLE_N, 1, DENSE_REPEATS)
-    us = [t / DENSE_STEPS * 1e6 for t in w["loops"]]
+    loops, old = [], []
+    for _ in range(DENSE_REPEATS):
+        if before is not None:
+            old += run_dense_worker("idle", IDLE_N, 1, 1, before)["loops"]
+        w = run_dense_worker("idle", IDLE_N, 1, 1)
+        loops += w["loops"]
+    us = [t / DENSE_STEPS * 1e6 for t in loops]
     dense["fixed_cost"] = dict(
         N=w["n"], us_per_step_median=float(np.median(us)), us_per_step_best=min(us),
-        loop_s=w["loops"], note="spheres 0.1 mm apart in a closed box, no gravity: "
+        loop_s=loops, note="spheres 0.1 mm apart in a closed box, no gravity: "
         "candidates but no contact; one numba thread")
-    print(f"fixed cost: {w['n']} spheres without contacts, {np.median(us):.1f} us a step")
+    line = f"fixed cost: {w['n']} spheres without contacts, {np.median(us):.1f} us a step"
+    if old:
+        uo = [t / DENSE_STEPS * 1e6 for t in old]
+        dense["fixed_cost"]["before"] = dict(loop_s=old, us_per_step_median=float(np.median(uo)),
+                                             us_per_step_best=min(uo))
+        line += f" (before: {np.median(uo):.1f})"
+    print(line)
     res["dense"] = dense
 
 
@@ -436,12 +469,16 @@ def dense_plot(dense, ax):
     keys = list(dense["scenes"])
     for k, key in enumerate(keys):
         r = dense["scenes"][key]
-        bars = [("dem 1 thread", r["dem_1thread"]["mps_median"])]
+        bars = [("dem 1 thread", r["dem_1thread"]["mps_median"], "C0")]
         if "mps_median" in r.get("liggghts_1proc", {}):
-            bars.append(("LIGGGHTS 1 proc", r["liggghts_1proc"]["mps_median"]))
-        for b, (lab, val) in enumerate(bars):
-            off = (b - 0.5) * 0.4 if len(bars) == 2 else 0.0
-            ax.bar(k + off, val, 0.4, color=f"C{b}", label=lab if k == 0 else None)
+            bars.append(("LIGGGHTS 1 proc", r["liggghts_1proc"]["mps_median"], "C1"))
+        if "dem_1thread_before" in r:
+            bars.insert(0, ("dem 1 thread, --before", r["dem_1thread_before"]["mps_median"],
+                            "C7"))
+        w = 0.8 / len(bars)
+        for b, (lab, val, col) in enumerate(bars):
+            off = (b - (len(bars) - 1) / 2) * w
+            ax.bar(k + off, val, w, color=col, label=lab if k == 0 else None)
             ax.text(k + off, val, f"{val:.1f}", ha="center", va="bottom", fontsize=7)
     ax.set_xticks(range(len(keys)), [k.replace("_", "\nN = ") for k in keys], fontsize=8)
     ax.set_ylabel("M particle-steps / s (median)")
@@ -455,6 +492,9 @@ def main():
     ap.add_argument("--worker", nargs=3, type=int, help=argparse.SUPPRESS)
     ap.add_argument("--mpi-worker", nargs=2, type=int, help=argparse.SUPPRESS)
     ap.add_argument("--dense-worker", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--before", default=None,
+                    help="a directory holding another version's dem package: the dense "
+                         "scenes run on it too, in the same rounds")
     ap.add_argument("--scenes", default="settle,dense",
                     help="comma-separated: settle (peers' scene, N = 10k, 50k: threads, MPI "
                          "ranks, LIGGGHTS) and/or dense (window-size lattices)")
@@ -479,7 +519,7 @@ def main():
           f"{res['machine']['numba_target_cpu']}")
     if "dense" in scenes:
         with tempfile.TemporaryDirectory() as work:
-            run_dense(res, P, work)
+            run_dense(res, P, work, args.before)
     if "settle" not in scenes:
         res["N"] = []
         return finish(res, out)
