@@ -53,12 +53,14 @@ def scene(seed=5):
 
 
 def settled(prescribed_pairs=True):
-    """The serial run after SETTLE steps (a pull of [N] on some grains), the clump's rows."""
+    """The serial run after SETTLE steps (a pull [N] on some grains, the last 100 damped),
+    and the clump's rows."""
     p, mat, walls, pulled, pen = scene()
     sim = dem.Simulation(p, mat, walls, (0, 0, -9.81), allow_overlap=True,
                          prescribed_pairs=prescribed_pairs)
     sim.set_external_force(pulled, (1e-4, 0.0, 5e-4))
-    sim.step(SETTLE)
+    sim.step(SETTLE - 100)
+    sim.step(100, decay=0.995)  # (damping_removed carries on)
     return sim, pen
 
 
@@ -132,6 +134,7 @@ def assert_continues(dsim, sim, pen, exact):
     assert np.abs(fc - sim.p.force[pen].sum(axis=0)).max() <= \
         (0.0 if exact else 1e-12) * np.abs(fc).max()
     assert (dsim.time, dsim.nsteps) == (sim.time, sim.nsteps)
+    assert abs(dsim.damping_removed - sim.damping_removed) <= 1e-12 * sim.damping_removed
     en, es = dsim.energy(), sim.energy()
     scale = es["initial"] + abs(es["work_gravity"]) + abs(es["work_walls"]) \
         + abs(es["work_ghosts"])
@@ -141,18 +144,27 @@ def assert_continues(dsim, sim, pen, exact):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("prescribed_pairs", [True, False])
-def test_continues_the_serial_run(prescribed_pairs):
+@pytest.mark.parametrize("prescribed_pairs, cut", [(True, None), (False, None), (False, "z")])
+def test_continues_the_serial_run(prescribed_pairs, cut):
     """The same serial run on every rank, converted after SETTLE steps and pushed: its
     contact history is carried (every non-zero entry, to the bit; the forces evaluated from
     it equal the serial ones), and positions, velocities, forces, the walls' forces, the
-    clump's force and the energy ledger continue the serial run's (exactly on one rank)."""
+    clump's force and the energy ledger continue the serial run's (exactly on one rank).
+    Cuts: the default bisection (across x, through the tilted clump), or the caller's
+    slabs across z half a radius below the top grain (the clump above, its grains below)."""
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
     sim, pen = settled(prescribed_pairs)
+    owner = None
+    if cut == "z":
+        zcut = sim.p.x[: pen[0], 2].max() - 0.5 * R
+
+        def owner(x):
+            return np.where(x[:, 2] < zcut, comm.size - 1, 0).astype(np.int64)
+
     before = checksum(sim)
-    dsim = DistributedSimulation.from_simulation(sim, comm)
+    dsim = DistributedSimulation.from_simulation(sim, comm, owner=owner)
     assert checksum(sim) == before  # the serial run is left as it was
     assert dsim.prescribed_pairs is prescribed_pairs and dsim.dt == sim.dt
 
@@ -173,8 +185,13 @@ def test_continues_the_serial_run(prescribed_pairs):
     assert abs(sim.p.force[pen, 2].sum()) > 0.1  # [N]: the clump is in the packing
     if comm.size > 1:
         assert comm.allreduce(int((~dsim.owned).sum()), op=MPI.MIN) > 0  # halos exist
-        owners = comm.allgather(dsim.gid[dsim.owned][np.isin(dsim.gid[dsim.owned], pen)])
-        assert sum(len(o) > 0 for o in owners) > 1 or dsim.migrated > 0  # clump across ranks
+        out = dsim.gather()  # (collective)
+        rank = comm.bcast(None if out is None else out["rank"])
+        i, j = sim.contacts()
+        grain = np.isin(i, pen) != np.isin(j, pen)
+        assert (rank[i[grain]] != rank[j[grain]]).any()  # the clump meets other ranks' grains
+        if cut is None:
+            assert len(np.unique(rank[pen])) > 1  # and its spheres are on both sides
 
 
 @pytest.mark.mpi
