@@ -389,22 +389,25 @@ def _history_rows(nl, mine, gid):
 
 
 def _differs_across_ranks(comm, sim):
-    """None if the `Simulation` sim has the same state on every rank of comm (a checksum
-    of its `state_dict` and external forces), else a ValueError naming the ranks."""
-    h = hashlib.sha256()
+    """None if the `Simulation` sim has the same state on every rank of comm (checksums of
+    the entries of its `state_dict` and its external forces), else a ValueError naming the
+    ranks and the entries that differ from rank 0's."""
     d = sim.state_dict()
-    d.update({"external.rows": sim.external_force()[0], "external.force":
-              sim.external_force()[1], "prescribed_pairs": sim.prescribed_pairs})
-    for k in sorted(d):
-        h.update(k.encode())
-        h.update(np.ascontiguousarray(d[k]).tobytes())
-    sums = comm.allgather(h.hexdigest())
-    if len(set(sums)) == 1:
+    rows, f = sim.external_force()
+    d.update({"external.rows": rows, "external.force": f,
+              "prescribed_pairs": sim.prescribed_pairs})
+    sums = {k: hashlib.sha256(np.ascontiguousarray(d[k]).tobytes()).hexdigest()[:16]
+            for k in sorted(d)}
+    every = comm.allgather(sums)
+    bad = [r for r, c in enumerate(every) if c != every[0]]
+    if not bad:
         return None
-    bad = [r for r, c in enumerate(sums) if c != sums[0]]
+    keys = sorted({k for r in bad for k in every[0].keys() | every[r].keys()
+                   if every[0].get(k) != every[r].get(k)})
     return ValueError(f"from_simulation: the serial state differs across the ranks (checksum "
-                      f"of sim.state_dict() on rank 0: {sums[0][:12]}, differs on ranks "
-                      f"{bad}); build or load the same Simulation on every rank")
+                      f"of sim.state_dict() entries: ranks {bad} differ from rank 0 in "
+                      f"{keys[:8]}{' ...' if len(keys) > 8 else ''}); build or load the same "
+                      f"Simulation, to the bit, on every rank")
 
 
 class _LocalMotion:
