@@ -499,7 +499,10 @@ class DistributedSimulation:
         external forces (`set_external_force` by global id) and ``prescribed_pairs``; the
         energy ledger continues the serial one (its sums so far, ``initial`` and
         ``damping_removed`` are booked on rank 0: `energy` then equals what ``sim.energy()``
-        would give after the same steps, to round-off). ``sim`` is left untouched.
+        would give after the same steps, to round-off; before the first step its
+        ``elastic`` is that of the positions now, the serial run's of its last force pass:
+        they differ if rows were moved from outside since, e.g. a penetrator lowered).
+        ``sim`` is left untouched.
 
         owner, skin (default: the serial run's Verlet skin), halo_skin: as the constructor;
         prescribed_pairs, blowup_factor, check_every: default the serial run's; state_path:
