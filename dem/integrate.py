@@ -919,7 +919,7 @@ class Simulation:
         rowbuf = [np.empty((ng, 15)), np.empty((ng, 15))] if ghosts else None
         posbuf = [np.empty((ng, 3)), np.empty((ng, 3))] if ghosts else None
         res = np.empty(8)
-        kd = _kick_drift_par if get_num_threads() > 1 and p.n >= KD_PARALLEL_MIN else _kick_drift
+        kd = _kick_drift_par if p.n >= KD_PARALLEL_MIN and get_num_threads() > 1 else _kick_drift
         n = int(n)
         pending = None  # (works of the old forces, largest squared displacement) of a drift
         gprev = None  # ghost rows of the forces the drift cleared
