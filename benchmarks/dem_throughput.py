@@ -259,13 +259,14 @@ def dense_worker(kind, n, repeats):
     DENSE_STEPS steps from rest, contacts per particle at the end, KE)."""
     P = peers_params()
     dense_sim(P, kind, n).step(1)  # JIT (cached) outside the timing
-    loops = []
+    loops, cpu = [], []
     for _ in range(repeats):
         sim = dense_sim(P, kind, n)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         sim.step(DENSE_STEPS)
         loops.append(time.perf_counter() - t)
-    print(json.dumps(dict(loops=loops, n=sim.p.n, dt=sim.dt, builds=sim.nl.builds,
+        cpu.append(time.process_time() - c)
+    print(json.dumps(dict(loops=loops, cpu=cpu, n=sim.p.n, dt=sim.dt, builds=sim.nl.builds,
                           contacts_end=len(sim.contacts()[0]),
                           wall_candidates_end=len(sim.nl.wi),
                           ke_end=sim.energy()["kinetic_translational"])))
@@ -283,9 +284,17 @@ def run_dense_worker(kind, n, threads, repeats, root=None):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def run_liggghts_dense(P, n, workdir, diag=False):
-    """LIGGGHTS (peers' in.settle) on the dense 3D lattice: (loop time [s], thermo rows
-    (step, ke, contacts if diag)), or None if it is not installed."""
+def _children_cpu():
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def run_liggghts_dense(P, n, workdir, diag=False, nsteps=DENSE_STEPS):
+    """LIGGGHTS (peers' in.settle) on the dense 3D lattice for nsteps: (loop time [s],
+    thermo rows (step, ke, contacts if diag), CPU time of the whole process [s]), or None
+    if it is not installed."""
     exe = shutil.which("liggghts") or shutil.which("lmp_serial")
     if exe is None:
         return None
@@ -299,16 +308,18 @@ def run_liggghts_dense(P, n, workdir, diag=False):
         f.write("Atoms\n\n")
         for i, (x, y, z) in enumerate(pos, start=1):
             f.write(f"{i} 1 {2 * P.R:.17g} {P.RHO:.17g} {x:.17g} {y:.17g} {z:.17g}\n")
-    var = dict(datafile=str(data), dt=s["DT"], nsteps=DENSE_STEPS, E=s["E"], nu=s["NU"],
+    var = dict(datafile=str(data), dt=s["DT"], nsteps=nsteps, E=s["E"], nu=s["NU"],
                cor=s["COR"], mu=s["MU"], skin=s["SKIN"], Lx=lx, Ly=ly, diag=int(diag))
     cmd = [exe, "-in", str(PEERS / "liggghts/in.settle")]
     for k, v in var.items():
         cmd += ["-var", k, repr(float(v)) if isinstance(v, float) else str(v)]
+    c0 = _children_cpu()
     out = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=workdir)
+    cpu = _children_cpu() - c0
     loop = float(re.search(r"Loop time of ([0-9.eE+-]+)", out.stdout).group(1))
     rows = re.findall(r"^\s+(\d+)\s+\d+\s+(\S+)\s+\S+\s+(\S+)\s+\S+\s*$", out.stdout,
                       re.MULTILINE) if diag else []
-    return loop, [(int(a), float(b), float(c)) for a, b, c in rows]
+    return loop, [(int(a), float(b), float(c)) for a, b, c in rows], cpu
 
 
 def machine_info():
@@ -359,29 +370,36 @@ def run_dense(res, P, work, before=None):
                  note="from rest: touching lattices settle under gravity for "
                       f"{DENSE_STEPS} steps; M particle-steps/s = N x steps / loop time, "
                       "JIT excluded; one numba thread (NUMBA_NUM_THREADS=1) and one "
-                      "LIGGGHTS process, repeats interleaved"
+                      "LIGGGHTS process, repeats interleaved; cpu_s / cpu_loop_s: the "
+                      "CPU time of dem's loop (process_time) and of LIGGGHTS's (its run's "
+                      "less a run of 0 steps), ratio_dem_over_liggghts_cpu their ratio "
+                      "(other jobs on the cores slow the wall clock more)"
                       + ("" if before is None else "; dem_1thread_before: the --before "
                          f"version ({before}) in the same rounds, before this one"))
     for kind in ("3d", "2d"):
         for n in DENSE_NS:
             key = f"{kind}_{n}"
             r = dict(kind=kind, N=n)
-            dem_loops, lig_loops, old_loops = [], [], []
+            dem_loops, lig_loops, old_loops, dem_cpu, lig_cpu = [], [], [], [], []
             w = None
             for _ in range(DENSE_REPEATS):
                 if before is not None:
                     old_loops += run_dense_worker(kind, n, 1, 1, before)["loops"]
                 w = run_dense_worker(kind, n, 1, 1)
                 dem_loops += w["loops"]
+                dem_cpu += w["cpu"]
                 if kind == "3d":
                     lig = run_liggghts_dense(P, n, work)
                     if lig is not None:
                         lig_loops.append(lig[0])
+                        # the loop's CPU time: the run's less a run of no steps (set-up)
+                        lig_cpu.append(lig[2] - run_liggghts_dense(P, n, work, nsteps=0)[2])
             mps = [n * DENSE_STEPS / t / 1e6 for t in dem_loops]
             r["dem_1thread"] = dict(loop_s=dem_loops, mps_median=float(np.median(mps)),
                                     mps_best=max(mps), dt=w["dt"],
                                     contacts_per_particle_end=w["contacts_end"] / n,
-                                    neighbour_builds=w["builds"], ke_end=w["ke_end"])
+                                    neighbour_builds=w["builds"], ke_end=w["ke_end"],
+                                    cpu_s=dem_cpu)
             line = f"dense {key}: dem 1 thread {np.median(mps):.2f} M p-steps/s " \
                    f"(best {max(mps):.2f}), {w['contacts_end'] / n:.2f} contacts/particle"
             if old_loops:
@@ -390,11 +408,15 @@ def run_dense(res, P, work, before=None):
             if lig_loops:
                 lm = [n * DENSE_STEPS / t / 1e6 for t in lig_loops]
                 r["liggghts_1proc"] = dict(loop_s=lig_loops, mps_median=float(np.median(lm)),
-                                           mps_best=max(lm), source="run here")
+                                           mps_best=max(lm), source="run here",
+                                           cpu_loop_s=lig_cpu)
                 r["ratio_dem_over_liggghts"] = float(np.median(mps) / np.median(lm))
-                line += f"; LIGGGHTS {np.median(lm):.2f}: ratio {r['ratio_dem_over_liggghts']:.2f}"
+                # CPU time: less sensitive to other jobs on the cores than the wall clock
+                r["ratio_dem_over_liggghts_cpu"] = float(np.median(lig_cpu) / np.median(dem_cpu))
+                line += (f"; LIGGGHTS {np.median(lm):.2f}: ratio {r['ratio_dem_over_liggghts']:.2f}"
+                         f" (CPU time {r['ratio_dem_over_liggghts_cpu']:.2f})")
                 if n == DENSE_NS[0]:  # the trajectories agree: KE and contacts at the end
-                    _, rows = run_liggghts_dense(P, n, work, diag=True)
+                    _, rows, _ = run_liggghts_dense(P, n, work, diag=True)
                     r["liggghts_end"] = dict(step=rows[-1][0], ke=rows[-1][1],
                                              contacts=rows[-1][2])
             elif kind == "3d":
