@@ -1,7 +1,13 @@
 """`Simulation.step` without a hook runs its steps in one numba call (`dem.integrate._steps`)
 between neighbour builds and checks; with a hook it goes through the Python loop. Both
 must give the same bits: positions, velocities, forces, contact history, walls and every
-ledger term, across neighbour rebuilds, blow-up checks, a moving wall and external forces."""
+ledger term, across neighbour rebuilds, blow-up checks, a moving wall, external forces,
+GHOST rows and prescribed motions; and the loop is loaded from numba's disk cache."""
+
+import os
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
@@ -116,3 +122,29 @@ def test_fused_steps_with_ghosts_and_prescribed_motion(monkeypatch):
         depth += 0.2 * n * sims[0][0].dt
         same(sims[0][0], sims[1][0])
     assert calls and sims[0][0].energy()["work_ghosts"] != 0.0
+
+
+CACHE_SCRIPT = textwrap.dedent("""
+    import numpy as np, dem
+    from dem import integrate
+    g = np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    p = dem.Particles.spheres((g + 0.5) * 2.0e-3, 1e-3, 2650.0)
+    mat = dem.ContactMaterial(E=2.9e7, nu=0.25, density=2650.0, friction=0.5,
+                              restitution=0.5)
+    sim = dem.Simulation(p, mat, dem.box_walls((0, 0, 0), (0.01,) * 3), (0, 0, -9.81))
+    sim.step(30)
+    k = integrate._steps
+    print(sum(k.stats.cache_misses.values()), sum(k.stats.cache_hits.values()))
+""")
+
+
+def test_fused_steps_load_from_the_disk_cache(tmp_path):
+    """A second process loads the fused loop from numba's disk cache (no compilation)."""
+    script = tmp_path / "run.py"
+    script.write_text(CACHE_SCRIPT)
+    env = dict(os.environ, PYTHONPATH=os.getcwd(), NUMBA_NUM_THREADS="1")
+    for _ in range(2):
+        out = subprocess.run([sys.executable, str(script)], env=env, check=True,
+                             capture_output=True, text=True, cwd=os.getcwd())
+    misses, hits = (int(a) for a in out.stdout.split())
+    assert misses == 0 and hits >= 1
