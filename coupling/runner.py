@@ -75,7 +75,7 @@ class Steps(Protocol):
 
     def advance(self) -> dict: ...                        # one step; its history record
     def frame_time(self, record: dict) -> float: ...      # strictly increasing
-    def particles(self) -> dict | None: ...               # x, radius and point data (rank 0)
+    def particles(self) -> dict | None: ...               # x, radius and point data (collective)
     def postfix(self, record: dict) -> dict: ...          # the progress bar's figures
     def save_checkpoint(self, directory: Path, meta: dict | None) -> None: ...   # collective
     def save_last_good(self, where: Path) -> None: ...    # collective
@@ -144,7 +144,7 @@ def _loop(steps, out, comm, outputs, progress, stop, meta, header):
                     write_history(out, steps.history, steps.history_name, header)
             if frame:
                 collect(comm)
-                _write_frame(steps, writers, record)
+                _write_frame(steps, writers, record, outputs.particles)
             if saved:
                 steps.save_checkpoint(out / "checkpoint", meta)
             if bar is not None:
@@ -196,11 +196,12 @@ def _writers(steps, out, comm, outputs, start):
     return fields, grains
 
 
-def _write_frame(steps, writers, record):
+def _write_frame(steps, writers, record, particles: bool):
     fields, grains = writers
     t = steps.frame_time(record)
     if fields is not None:
         fields.write(t)
-    if grains is not None:
+    if particles:   # on every rank: grains split over the ranks are gathered collectively
         data = steps.particles()
-        grains.write(t, data.pop("x"), data.pop("radius"), **data)
+        if grains is not None:
+            grains.write(t, data.pop("x"), data.pop("radius"), **data)

@@ -354,7 +354,7 @@ class CoupledPenetration:
         except Exception as err:
             # a set-up failure after the grains exist hands their state to the caller to keep
             sim = getattr(self, "sim", None)
-            if sim is not None:
+            if sim is not None and hasattr(sim, "p"):
                 err.grains = sim.p.state_dict()
             raise
 
@@ -403,6 +403,7 @@ class CoupledPenetration:
                 walls.append(top_plate(self.x_grains, radius, dim))
         # the force-carrying exchange reads a ghost's force as the free grains' push on it
         self.forces = prm.interface == "forces"
+        self.distributed = False   # the push's grains split over the ranks (end of the set-up)
         self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
                               dt=dem_time_step(prm, radius), allow_overlap=True,
                               prescribed_pairs=not self.forces)
@@ -514,9 +515,38 @@ class CoupledPenetration:
             self.sim.compute_forces(update_history=False)
             self.f0 = self.sim.p.force[self.ghost_local, :dim].copy()
             self.f_applied = np.zeros_like(self.f0)
+        # the push's grains over the ranks: the consolidated window continued as a distributed run
+        self._distribute_grains(saved)
         if saved is not None:
             self._restore_run(saved)
         self._g_now = None   # ghost motion of the current FE state, kept by each step for the next
+
+    def _distribute_grains(self, saved):
+        """``self.sim`` becomes a `dem.DistributedSimulation` continuing the serial one (every
+        rank's is the same): split by space, halo skin two grain radii (as the full DEM's:
+        the cone's spheres are owned particles); a restart then reads each rank's part."""
+        from dem.parallel import DistributedSimulation, RecursiveBisection
+
+        self.distributed = self.prm.distribute_grains and self.comm.size > 1
+        if not self.distributed:
+            return
+        serial = self.sim
+        self.particles = serial.p   # radii, masses, kinds: fixed for the run
+        # cuts through the consolidated window across gravity, kept by checkpoints: a restart
+        # decomposes where the run did (the same pair orders, the same bits)
+        if saved is None:
+            axes = [a for a in range(3) if a != VERTICAL[self.prm.dim]]
+            self.owner = RecursiveBisection.from_points(serial.p.x, self.comm.size, axes)
+        else:
+            g = saved["grains"]
+            self.owner = RecursiveBisection(g["owner.axis"], g["owner.cut"], g["owner.below"],
+                                            g["owner.above"], self.comm.size)
+        self.sim = DistributedSimulation.from_simulation(serial, self.comm, owner=self.owner,
+                                                         halo_skin=2 * self.prm.radius,
+                                                         prescribed_pairs=not self.forces)
+        if saved is not None:
+            self.sim.load_state(saved["grains_rank"])
+        self._ghost_rows = None   # (positions in the ghost list, local rows) of the owned ghosts
 
     # ---- set-up -------------------------------------------------------------------------
     def _continuum_model(self):
@@ -789,10 +819,28 @@ class CoupledPenetration:
         return self._converged_step()
 
     def _grain_displacement(self) -> np.ndarray:
-        """The free and ghost grains' displacements (n, dim) the projection reads."""
-        dim = self.prm.dim
-        u = self.sim.p.x[: self.n_grains, :dim] - self.x_ref[:, :dim]
+        """The free and ghost grains' displacements (n, dim) the projection reads (collective
+        when the grains are distributed)."""
+        dim, n = self.prm.dim, self.n_grains
+        x = self.sim.values_of(np.arange(n), "x") if self.distributed else self.sim.p.x[:n]
+        u = x[:, :dim] - self.x_ref[:, :dim]
         return u if self._q_ref is None else u + self._q_ref[:, :dim]
+
+    def _cone_force(self) -> np.ndarray:
+        """(k, 3) [N]: the grains' forces on the clump's spheres (its own contacts taken out)."""
+        f = self.sim.values_of(self.pen_index, "force") if self.distributed else self.sim.p.force[self.pen_index]
+        return f - self.clump_internal
+
+    def grain_state(self) -> Particles:
+        """Every particle now, in the serial order (collective: distributed grains are gathered
+        to every rank)."""
+        if not self.distributed:
+            return self.sim.p
+        g = self.comm.bcast(self.sim.gather(root=0), root=0)
+        q = self.particles
+        p = Particles(g["x"], g["v"], g["omega"], q.radius, q.mass, q.inertia, q.material, q.kind, q.dim)
+        p.force[:], p.torque[:] = g["force"], g["torque"]
+        return p
 
     def _converged_step(self) -> dict:
         """One FE step whose exchange is iterated to ``prm.interface_tol``: the grains are
@@ -844,7 +892,7 @@ class CoupledPenetration:
         self._g_now = g_next if converged else self._ghost_motion()
         self.depth, self.g_prev = depth, g_next
         mismatch = self._check_ghosts(self._g_now, g_next, k)
-        f = sim.p.force[self.pen_index] - self.clump_internal
+        f = self._cone_force()
         self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
                                         interface_mismatch=mismatch, interface_iterations=it,
                                         interface_residual=float(res), interface_converged=converged,
@@ -878,15 +926,35 @@ class CoupledPenetration:
         total = np.zeros_like(self.f0)
 
         def add_reactions():
-            total[:] += sim.p.force[rows, :prm.dim]
+            if self.distributed:   # this rank's owned ghosts; summed over the ranks after
+                at, local = self._owned_ghosts()
+                total[at] += sim.local.p.force[local, :prm.dim]
+            else:
+                total[:] += sim.p.force[rows, :prm.dim]
 
         def exchange():
+            if self.distributed:
+                total[:] = self.comm.allreduce(total)
             push = total / prm.substeps - self.f0
             self.f_applied += prm.relaxation * (push - self.f_applied)
             self.interface.apply(self.f_applied)
             return {"ghost_push": float(np.abs(self.f_applied).sum())}
 
         return self._staggered_step(exchange, hook=add_reactions)
+
+    def _owned_ghosts(self) -> tuple[np.ndarray, np.ndarray]:
+        """The ghosts this rank owns in the distributed run: their positions in the ghost
+        list and their rows in its local run (found again after each decomposition)."""
+        sim = self.sim
+        if self._ghost_rows is None or self._ghost_rows[0] is not sim.gid:
+            gid, rows = sim.gid, self.ghost_local
+            at = local = np.empty(0, np.int64)
+            if sim.local is not None and len(gid):
+                loc = np.minimum(np.searchsorted(gid, rows), len(gid) - 1)   # gid: sorted
+                mine = (gid[loc] == rows) & sim.owned[loc]
+                at, local = np.flatnonzero(mine), loc[mine]
+            self._ghost_rows = (gid, at, local)
+        return self._ghost_rows[1], self._ghost_rows[2]
 
     def _staggered_step(self, exchange, hook=None) -> dict:
         """One FE step of a staggered exchange: one DEM sub-cycle (``hook`` after each DEM
@@ -918,7 +986,7 @@ class CoupledPenetration:
         mismatch = self._check_ghosts(g_new, g_next, k)
         # the ghosts continue from where the grains saw them (no jump between FE steps)
         self.g_prev = g_next
-        f = sim.p.force[self.pen_index] - self.clump_internal   # forces of the grains only
+        f = self._cone_force()
         self.history.append(cone_record(prm, f, self.parts, self.depth, k + 1, st.t,
                                         interface_mismatch=mismatch, dem_time=t_dem, **extra,
                                         wall_time=clock() - t0))
@@ -962,17 +1030,26 @@ class CoupledPenetration:
 
         comm, st = self.comm, self.stepper
         step = len(self.history)
+        # the grains: one file (distributed: each rank's part beside the positions, gathered)
+        grains = _dem_state(self.sim) if not self.distributed else {
+            "p.x": self.grain_state().x, **{f"rank.{k}": v for k, v in self.sim.state_dict().items()},
+            **{f"owner.{k}": getattr(self.owner, k) for k in ("axis", "cut", "below", "above")}}
 
         def files(tmp: Path) -> list[str]:
+            own = []
+            if self.distributed:
+                own = [f"grains_rank{comm.rank}_of{comm.size}.npz"]
+                np.savez(tmp / own[0], **{k[5:]: v for k, v in grains.items() if k.startswith("rank.")})
             name = f"continuum_rank{comm.rank}_of{comm.size}.npz"
             np.savez(tmp / name, w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
                      a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem.last_good,
                      **{f"qp.{k}": v for k, v in self.problem.state.state_dict().items()},
                      **{f"iqn.{k}": v for k, v in self.accelerator.state_dict().items()})
             if comm.rank != 0:
-                return [name]
+                return [name] + own
             forces = {} if self.f0 is None else {"f0": self.f0, "f_applied": self.f_applied}
-            np.savez(tmp / "grains.npz", **_dem_state(self.sim), x_ref=self.x_ref, pen0=self.pen0,
+            serial = {k: v for k, v in grains.items() if not k.startswith("rank.")}
+            np.savez(tmp / "grains.npz", **serial, x_ref=self.x_ref, pen0=self.pen0,
                      g_prev_u=self.g_prev[0], g_prev_theta=self.g_prev[1], **forces)
             state = {"step": step, "depth": self.depth, "t": st.t,
                      "ranks": comm.size, "surface": self.surface,
@@ -981,7 +1058,7 @@ class CoupledPenetration:
                      "plate_area": self.servos[0].area if self.servos else None,
                      "history": self.history}
             (tmp / "state.json").write_text(json.dumps(state, indent=1))
-            return [name, "grains.npz", "state.json"]
+            return [name, "grains.npz", "state.json"] + own
 
         return write_checkpoint(directory, step, comm, files, meta=meta)
 
@@ -1013,14 +1090,25 @@ class CoupledPenetration:
             raise FileNotFoundError(f"the checkpoint in {directory} is not a penetration "
                                     f"checkpoint or is damaged ({type(err).__name__}: "
                                     f"{err})") from None
-        _load_dem_state(self.sim, grains)
+        split = None
+        if self.prm.distribute_grains and comm.size > 1:
+            # each rank's part of the distributed run, loaded once it is built
+            try:
+                split = dict(np.load(directory / f"grains_rank{comm.rank}_of{comm.size}.npz"))
+            except OSError as err:
+                raise FileNotFoundError(f"the checkpoint in {directory} has no grains of rank "
+                                        f"{comm.rank} ({err}): written without distribute_grains?") from None
+            if len(grains["p.x"]) != self.sim.p.n:
+                raise ValueError(f"checkpoint holds {len(grains['p.x'])} particles, the simulation {self.sim.p.n}")
+        else:
+            _load_dem_state(self.sim, grains)
         self.x_ref, self.pen0 = grains["x_ref"], grains["pen0"]
         self.material_fe = material
         self.contact_stats = state["packing"]
         s0 = state.get("initial_stress")
         self.initial_stress = None if s0 is None else tuple(s0)
         self.surface = state["surface"]
-        return {"state": state, "grains": grains, "fe": fe}
+        return {"state": state, "grains": grains, "fe": fe, "grains_rank": split}
 
     def _restore_run(self, saved: dict) -> None:
         st, fe, state = self.stepper, saved["fe"], saved["state"]

@@ -58,6 +58,10 @@ class PenetrationParameters:
     # prescribed (coupling.reactions), one exchange per FE step
     interface: str = "loose"
     interface_tol: float = 1e-3       # relative change of the prescribed displacements
+    # on more than one rank, the push's grains split over the ranks by space (a
+    # dem.DistributedSimulation continuing the consolidated window, which every rank still
+    # builds alike); False: every rank runs all of them (3D chambers under a vertical stress)
+    distribute_grains: bool = False
     interface_max_iterations: int = 15
     settle_time: float = 0.3
     gravity: float = 9.81
@@ -165,6 +169,11 @@ class PenetrationParameters:
         if self.continuum_constants.startswith("window") and not (self.dim == 3 and self.vertical_stress > 0):
             raise ValueError(f"continuum_constants = {self.continuum_constants!r} probes the window under "
                              "the 3D chamber's top plate: it needs dim = 3 and vertical_stress > 0")
+        if not isinstance(self.distribute_grains, bool):
+            raise ValueError(f"distribute_grains must be true or false, got {self.distribute_grains!r}")
+        if self.distribute_grains and not (self.dim == 3 and self.vertical_stress > 0):
+            raise ValueError("distribute_grains = true splits the 3D chamber's push over the ranks: it "
+                             "needs dim = 3 and vertical_stress > 0")
         if self.interface == "forces" and self.dim == 3 and self.vertical_stress == 0:
             raise ValueError("interface = 'forces' needs the increment from a consolidated state "
                              "(2D, or vertical_stress > 0 in 3D): the 3D geostatic start "

@@ -137,7 +137,7 @@ class PenetrationSteps:
         return float(record["time"])
 
     def particles(self) -> dict:
-        p = self.cpt.sim.p
+        p = self.cpt.grain_state()
         return {"x": p.x, "radius": p.radius, "velocity": p.v, "kind": p.kind.astype(float), "force": p.force}
 
     def postfix(self, record: dict) -> dict:
@@ -152,8 +152,9 @@ class PenetrationSteps:
         from dem.io import save_state
 
         self.cpt.problem.write_checkpoint(where)
+        p = self.cpt.grain_state()
         if self.cpt.comm.rank == 0:
-            save_state(where / "grains.npz", **self.cpt.sim.p.state_dict())
+            save_state(where / "grains.npz", **p.state_dict())
 
     def stopped(self, err: BaseException, where: Path) -> str:
         depth = self.history[-1]["depth"] if self.history else 0.0
@@ -202,7 +203,7 @@ def _picture(cpt, path):
     half y <= 0, cut open at y = 0, with the grains in a slab just in front of the cut."""
     from granfe.io import render_png
 
-    prm, p = cpt.prm, cpt.sim.p
+    prm, p = cpt.prm, cpt.grain_state()
     W, s = 0.5 * prm.chamber_width, cpt.surface
     # down to the lowest grain (a window that followed the cone reaches deeper)
     ax = VERTICAL[prm.dim]

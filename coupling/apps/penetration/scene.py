@@ -109,7 +109,9 @@ class Exchange:
     step), or ``forces``, one pass per FE step with the ghosts' reactions as the continuum's
     loads (relaxed by ``relaxation``) and nothing of it prescribed (`coupling.reactions`).
     ``dt_factor``: the DEM step over the law's default (0.05 of the critical step of
-    the linear law, 0.2 Rayleigh for Hertz-Mindlin; up to 20 / 5)."""
+    the linear law, 0.2 Rayleigh for Hertz-Mindlin; up to 20 / 5). ``distribute_grains``
+    (3D chambers): on more than one rank the push's grains are split over the ranks by space
+    (`dem.DistributedSimulation`), not run whole on every rank."""
 
     substeps: int = parameter(P, "substeps")
     dt_factor: float = parameter(P, "dt_factor")
@@ -117,6 +119,7 @@ class Exchange:
     interface: str = parameter(P, "interface")
     interface_tol: float = parameter(P, "interface_tol")
     interface_max_iterations: int = parameter(P, "interface_max_iterations")
+    distribute_grains: bool = parameter(P, "distribute_grains")
 
 
 @dataclass(frozen=True)

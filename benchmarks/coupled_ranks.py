@@ -1,0 +1,146 @@
+"""The coupled 3D chamber on one and two ranks: what a second core buys.
+
+The scene is ``scenes/chamber_3d.toml`` (the force-carrying exchange, the window's constants
+probed in situ; window ``--window`` half width). Each case runs in a fresh process,
+``NUMBA_NUM_THREADS=1``, ``--repeat`` times, interleaved (1 rank, 2 ranks, 1 rank, ...) so that
+a busy spell of the machine hits all alike:
+
+- ``serial``: one rank;
+- ``replicated``: two ranks, the continuum split over them and every grain on both (the
+  default, ``coupling.distribute_grains = false``);
+- ``distributed``: two ranks, the push's grains split over them by space
+  (``distribute_grains = true``: the consolidated window continued as a
+  `dem.DistributedSimulation`; the consolidation and the probe still run on every rank).
+
+Per case: set-up and push wall times, the push's split (DEM, ghosts, FE solve), and q_c
+against the serial run's (the runs are different trajectories of a chaotic packing once
+round-off differs, so they agree as packings do, not to the bit). Writes
+``benchmarks/results/coupled_ranks.json`` (min and median over repeats, the CPU model).
+
+Run: ``python benchmarks/coupled_ranks.py [--repeat 2] [--window 0.02]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from machine import machine
+
+ROOT = Path(__file__).resolve().parents[1]
+SHORT = os.environ.get("GRANFE_SHORT") == "1"
+parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+parser.add_argument("--scene", type=Path, default=ROOT / "scenes" / "chamber_3d.toml")
+parser.add_argument("--window", type=float, default=0.02, help="window half width [m]")
+parser.add_argument("--depth", type=float, default=None, help="push [m] (default the scene's)")
+parser.add_argument("--repeat", type=int, default=1 if SHORT else 2)
+parser.add_argument("--cases", nargs="+", default=["serial", "replicated", "distributed"],
+                    choices=["serial", "replicated", "distributed"])
+parser.add_argument("--out", type=Path, default=Path("output/coupled_ranks"))
+parser.add_argument("--results", type=Path, default=ROOT / "benchmarks" / "results")
+parser.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
+args = parser.parse_args()
+
+RANKS = {"serial": 1, "replicated": 2, "distributed": 2}
+
+
+def worker(path: Path) -> None:
+    """One run (under mpiexec for two ranks): set-up, push, the timings on rank 0."""
+    import dolfinx_solver  # noqa: F401
+    from mpi4py import MPI
+
+    from coupling.apps.penetration.coupled import CoupledPenetration
+    from coupling.scene import load_scene
+
+    case = json.loads(path.read_text())
+    comm = MPI.COMM_WORLD
+    overrides = {"window": {"half_width": case["window"]}, "coupling": {"distribute_grains": case["distribute"]}}
+    if case["depth"] is not None:
+        overrides["penetrator"] = {"depth": case["depth"]}
+    prm = load_scene(case["scene"], overrides).parameters()
+    comm.barrier()
+    t0, c0 = time.perf_counter(), time.process_time()
+    model = CoupledPenetration(prm, comm, log=lambda m: None)
+    comm.barrier()
+    t1, c1 = time.perf_counter(), time.process_time()
+    history = model.run()
+    comm.barrier()
+    t2, c2 = time.perf_counter(), time.process_time()
+    split = {k: float(sum(s.get(k, 0.0) for s in model.step_timings))
+             for k in ("dem", "ghost_motion", "projection", "fe_solve", "total")}
+    cpu = comm.allreduce(np.array([c1 - c0, c2 - c1]))
+    if comm.rank == 0:
+        out = {"ranks": comm.size, "distributed": model.distributed, "grains": model.n_grains,
+               "fe_steps": len(history), "dem_steps": int(model.sim.nsteps),
+               "setup_s": t1 - t0, "push_s": t2 - t1, "setup_cpu_s": float(cpu[0]),
+               "push_cpu_s": float(cpu[1]), "split_s": split,
+               "q_c": [h["q_c"] for h in history], "depth": [h["depth"] for h in history]}
+        path.with_suffix(".out.json").write_text(json.dumps(out))
+
+
+def run(name: str, k: int) -> dict:
+    case = {"scene": str(args.scene), "window": args.window, "depth": args.depth,
+            "distribute": name == "distributed"}
+    path = args.out / f"{name}_{k}.json"
+    path.write_text(json.dumps(case))
+    launch = [sys.executable, __file__, "--worker", str(path)]
+    if RANKS[name] > 1:
+        launch = [str(Path(sys.executable).parent / "mpiexec"), "-n", str(RANKS[name])] + launch
+    proc = subprocess.run(launch, capture_output=True, text=True,
+                          env={**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
+    if proc.returncode:
+        raise RuntimeError(f"{name} failed:\n{proc.stderr[-3000:]}")
+    out = json.loads(path.with_suffix(".out.json").read_text())
+    print(f"{name} ({k + 1}/{args.repeat}): set-up {out['setup_s']:.1f} s, push {out['push_s']:.1f} s "
+          f"(DEM {out['split_s']['dem']:.1f} s, FE {out['split_s']['fe_solve']:.1f} s)", flush=True)
+    return out
+
+
+def stats(values) -> dict:
+    return {"min": float(np.min(values)), "median": float(np.median(values)), "all": [float(v) for v in values]}
+
+
+if __name__ == "__main__":
+    if args.worker is not None:
+        worker(args.worker)
+        sys.exit(0)
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.results.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    runs = {name: [] for name in args.cases}
+    for k in range(args.repeat):
+        for name in args.cases:
+            runs[name].append(run(name, k))
+    summary = {}
+    ref = np.array(runs[args.cases[0]][0]["q_c"])
+    for name, rs in runs.items():
+        push, setup = [r["push_s"] for r in rs], [r["setup_s"] for r in rs]
+        summary[name] = {
+            "ranks": RANKS[name], "grains": rs[0]["grains"], "fe_steps": rs[0]["fe_steps"],
+            "setup_s": stats(setup), "push_s": stats(push), "total_s": stats(np.add(setup, push)),
+            "push_dem_s": stats([r["split_s"]["dem"] for r in rs]),
+            "push_fe_s": stats([r["split_s"]["fe_solve"] for r in rs]),
+            "push_cpu_s": stats([r["push_cpu_s"] for r in rs]),
+            # q_c against the first case's first run over the push (RMS over its largest value)
+            "q_c_rms_vs_first": [float(np.sqrt(np.mean((np.array(r["q_c"]) - ref) ** 2)) / np.abs(ref).max())
+                                 for r in rs]}
+    base = summary[args.cases[0]]
+    for name, s in summary.items():
+        for key in ("push_s", "total_s"):
+            s[f"speedup_{key[:-2]}_median"] = base[key]["median"] / s[key]["median"]
+            s[f"speedup_{key[:-2]}_min"] = base[key]["min"] / s[key]["min"]
+        print(f"{name}: push {s['push_s']['median']:.1f} s median ({s['speedup_push_median']:.2f}x), "
+              f"total {s['total_s']['median']:.1f} s ({s['speedup_total_median']:.2f}x), q_c RMS against "
+              f"{args.cases[0]}: {', '.join(f'{e:.3f}' for e in s['q_c_rms_vs_first'])}")
+    results = {"command": " ".join(sys.argv), "inputs": {k: str(v) for k, v in vars(args).items()},
+               "machine": machine(), "wall_time_s": time.perf_counter() - t0,
+               "load_average_at_end": os.getloadavg(), "cases": summary}
+    path = args.results / "coupled_ranks.json"
+    path.write_text(json.dumps(results, indent=1))
+    print(f"wrote {path}")
