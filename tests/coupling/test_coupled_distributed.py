@@ -28,6 +28,7 @@ CHAMBER_3D = dict(dim=3, chamber_width=0.075, chamber_depth=0.045, radius=1.5e-3
 
 
 @pytest.mark.mpi
+@pytest.mark.skipif(MPI.COMM_WORLD.size == 1, reason="on one rank distribute_grains changes nothing")
 def test_distributed_push_is_the_replicated_one(tmp_path):
     comm = MPI.COMM_WORLD
     prm = PenetrationParameters(**CHAMBER_3D)
