@@ -950,7 +950,8 @@ class DistributedSimulation:
         """Int values (n_local,) of owned particles copied into their halo copies."""
         send, recv, _, _, sc, rc = self._plan
         rbuf = np.empty(len(recv))
-        sbuf = np.where(send >= 0, values[send], 0).astype(float)
+        sbuf = np.zeros(len(send))
+        sbuf[send >= 0] = values[send[send >= 0]]  # (header rows: nothing; a rank may be empty)
         self.comm.Alltoallv(_spec(sbuf, sc), _spec(rbuf, rc))
         copy = recv >= 0
         values[recv[copy]] = rbuf[copy].astype(values.dtype)
