@@ -923,7 +923,7 @@ class Simulation:
         n = int(n)
         pending = None  # (works of the old forces, largest squared displacement) of a drift
         gprev = None  # ghost rows of the forces the drift cleared
-        fused = hook is None and decay is None and cell is None
+        fused = hook is None and decay is None and cell is None and self._plain_loop()
         s = 0
         while s < n:
             if fused:  # as many steps as it can in one numba call (`_steps`)
@@ -985,6 +985,14 @@ class Simulation:
         if self.nsteps % self.check_every:
             self._check()
         return n
+
+    _LOOP_METHODS = ("_evaluate", "_book", "_positions", "_ghost_rows", "_x0_tracked")
+
+    def _plain_loop(self) -> bool:
+        """Whether the step loop's methods are this class's (a subclass that changes one of
+        them keeps the Python loop: `_steps` does what these do here)."""
+        cls = type(self)
+        return all(getattr(cls, m) is getattr(Simulation, m) for m in self._LOOP_METHODS)
 
     def _fused(self, s, n, pending, pk, gprev):
         """Steps s, s + 1, ... of a `step` call of n steps in `_steps` (no hook, damping or

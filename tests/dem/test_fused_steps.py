@@ -148,3 +148,20 @@ def test_fused_steps_load_from_the_disk_cache(tmp_path):
                              capture_output=True, text=True, cwd=os.getcwd())
     misses, hits = (int(a) for a in out.stdout.split())
     assert misses == 0 and hits >= 1
+
+
+def test_a_subclass_that_changes_the_loop_keeps_the_python_loop(monkeypatch):
+    calls = counted(monkeypatch)
+
+    class Booked(dem.Simulation):
+        def _book(self, *args):
+            self.booked = getattr(self, "booked", 0) + 1
+            super()._book(*args)
+
+    sim = scene(3)
+    sim.__class__ = Booked
+    sim.step(20)
+    assert sim.booked == 20 and not calls
+    sim.__class__ = dem.Simulation
+    sim.step(5)
+    assert calls
