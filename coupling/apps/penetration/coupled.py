@@ -215,6 +215,13 @@ def _load_dem_state(sim: Simulation, data) -> None:
     sim.load_state({k[4:]: v for k, v in data.items() if k.startswith("dem.")})
 
 
+# The grains' neighbour lists have a skin of one grain radius (Simulation's default is a fifth):
+# the cone's spheres move half the default in ~10 DEM steps, so its lists rebuilt once an FE
+# step at 14-15 ms a build (10k-grain window). Measured on the 3D chamber's 2 cm window,
+# pushed, 200 DEM steps from one state: 4.45 ms a DEM step with the default skin, 3.54 / 3.47
+# / 3.27 ms with 2 / 3 / 5 times it (5 times lists 1.5x the pairs, an open one ~3 ns to test).
+
+
 def _distributed_run(p, materials, walls, prm, radius, comm):
     """The full DEM's `dem.DistributedSimulation` over the ranks of ``comm`` (``p`` on every
     rank; rank 0's is scattered): the serial run's step, set through the constructor.
@@ -229,7 +236,7 @@ def _distributed_run(p, materials, walls, prm, radius, comm):
     # as the serial run, dt_factor scales the step after its check (force_dt)
     return DistributedSimulation(p if comm.rank == 0 else None, materials, walls, _gravity(prm),
                                  dt=dem_time_step(prm, radius) * prm.dt_factor, comm=comm,
-                                 force_dt=True, allow_overlap=True, halo_skin=2 * prm.radius)
+                                 force_dt=True, allow_overlap=True, skin=prm.radius, halo_skin=2 * prm.radius)
 
 
 class DemPenetration:
@@ -287,7 +294,7 @@ class DemPenetration:
             height = float(np.ptp(x[:, ax])) + 2 * prm.radius
         else:
             self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
-                                  dt=dem_time_step(prm, radius), allow_overlap=True)
+                                  dt=dem_time_step(prm, radius), allow_overlap=True, skin=prm.radius)
             self.sim.dt *= prm.dt_factor
             self.sim.compute_forces(update_history=False)
         self.clump_internal = self.clump_forces()
@@ -405,7 +412,7 @@ class CoupledPenetration:
         self.forces = prm.interface == "forces"
         self.distributed = False   # the push's grains split over the ranks (end of the set-up)
         self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
-                              dt=dem_time_step(prm, radius), allow_overlap=True,
+                              dt=dem_time_step(prm, radius), allow_overlap=True, skin=prm.radius,
                               prescribed_pairs=not self.forces)
         self.sim.dt *= prm.dt_factor
         # the clump's own (constant) internal forces, to subtract from the penetrator's resultant

@@ -429,7 +429,7 @@ class MovingWindowPenetration(CoupledPenetration):
                               prm.density, dim=old.p.dim, kind=kind.astype(np.int8),
                               v=np.vstack([v, np.zeros((n_pen, 3))]),
                               omega=np.vstack([omega, np.zeros((n_pen, 3))]))
-        sim = Simulation(p, self.material, gravity=old.gravity, dt=old.dt, allow_overlap=True)
+        sim = Simulation(p, self.material, gravity=old.gravity, dt=old.dt, allow_overlap=True, skin=old.nl.skin)
         old_pen = len(self.pen_index)
         cone = n + np.arange(old_pen) if same_clump else np.full(old_pen, -1)
         carried = carry_pair_history(old.nl, np.concatenate([np.asarray(new_of_old, np.int64), cone]),
