@@ -856,11 +856,16 @@ class Simulation:
         candidates of ``free_only`` walls; a subclass may drop more (`dem.parallel` drops the
         halo copies' own contacts)."""
         if not self.prescribed_pairs and len(nl.pi):
-            k = self.p.kind
+            k = self._own_kinds()
             nl.keep_pairs((k[nl.pi] == FREE) | (k[nl.pj] == FREE))
         w = self.walls
         if len(nl.wi) and w.free_only.any():
             nl.keep_walls(~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST)))
+
+    def _own_kinds(self) -> np.ndarray:
+        """(n,) the particles' own kinds, by which ``prescribed_pairs = False`` drops pairs
+        (a subclass holding copies of other runs' particles gives theirs)."""
+        return self.p.kind
 
     def compute_forces(self, update_history: bool = True):
         """Contact forces at the current state into ``p.force``/``p.torque`` and

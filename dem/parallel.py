@@ -338,16 +338,14 @@ class _LocalSimulation(Simulation):
         if len(self._ghosts):
             self._at = (x[self._ghosts].copy(), self._at[1])
 
+    def _own_kinds(self) -> np.ndarray:
+        # a halo copy of a FREE particle is GHOST here: the pairs are judged on its own kind
+        return self.kinds
+
     def _prune(self, nl):
-        keep = ~(self.halo[nl.pi] & self.halo[nl.pj])
-        if not self.prescribed_pairs:
-            # on the particles' own kinds: a halo copy of a FREE particle is GHOST here
-            keep &= (self.kinds[nl.pi] == FREE) | (self.kinds[nl.pj] == FREE)
-        nl.keep_pairs(keep)
+        nl.keep_pairs(~(self.halo[nl.pi] & self.halo[nl.pj]))
         nl.keep_walls(~self.halo[nl.wi])
-        w = self.walls  # as `Simulation._prune` (an owned row has its own kind)
-        if len(nl.wi) and w.free_only.any():
-            nl.keep_walls(~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST)))
+        super()._prune(nl)
 
 
 def _positions_at_last_pass(s) -> np.ndarray:
@@ -1260,11 +1258,21 @@ class DistributedSimulation:
                              f"{gids.min()}..{gids.max()}")
         _agree(self.comm, err)
         out = np.zeros((len(gids), 3))
-        if self.local is not None and len(self.gid):
-            loc = np.minimum(np.searchsorted(self.gid, gids), len(self.gid) - 1)
-            mine = (self.gid[loc] == gids) & self.owned[loc]
-            out[mine] = getattr(self.local.p, key)[loc[mine]]
+        at, rows = self.owned_rows(gids)
+        if len(at):
+            out[at] = getattr(self.local.p, key)[rows]
         return self.comm.allreduce(out) if self.comm.size > 1 else out
+
+    def owned_rows(self, gids) -> tuple[np.ndarray, np.ndarray]:
+        """Of the particles ``gids`` (k,), those this rank owns: their positions in ``gids``
+        and their rows in ``local`` (not collective; valid until the next decomposition,
+        which replaces ``gid``)."""
+        gids = np.asarray(gids, np.int64).ravel()
+        if self.local is None or len(self.gid) == 0:
+            return np.empty(0, np.int64), np.empty(0, np.int64)
+        loc = np.minimum(np.searchsorted(self.gid, gids), len(self.gid) - 1)  # gid: sorted
+        mine = (self.gid[loc] == gids) & self.owned[loc]
+        return np.flatnonzero(mine), loc[mine]
 
     def force_on(self, gids) -> np.ndarray:
         """(3,) [N]: the sum of the forces on the particles ``gids`` (a clump's resultant,
