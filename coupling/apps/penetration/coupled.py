@@ -208,18 +208,24 @@ def _dem_state(sim: Simulation) -> dict:
     return {f"dem.{k}": np.asarray(v) for k, v in sim.state_dict().items()} | {"p.x": sim.p.x.copy()}
 
 
-def _load_dem_state(sim: Simulation, data) -> None:
-    """Inverse of :func:`_dem_state` on a simulation built with the same particle count."""
+def _check_particle_count(sim: Simulation, data) -> None:
     if len(data["p.x"]) != sim.p.n:
         raise ValueError(f"checkpoint holds {len(data['p.x'])} particles, the simulation {sim.p.n}")
+
+
+def _load_dem_state(sim: Simulation, data) -> None:
+    """Inverse of :func:`_dem_state` on a simulation built with the same particle count."""
+    _check_particle_count(sim, data)
     sim.load_state({k[4:]: v for k, v in data.items() if k.startswith("dem.")})
 
 
-# The grains' neighbour lists have a skin of one grain radius (Simulation's default is a fifth):
-# the cone's spheres move half the default in ~10 DEM steps, so its lists rebuilt once an FE
-# step at 14-15 ms a build (10k-grain window). Measured on the 3D chamber's 2 cm window,
-# pushed, 200 DEM steps from one state: 4.45 ms a DEM step with the default skin, 3.54 / 3.47
-# / 3.27 ms with 2 / 3 / 5 times it (5 times lists 1.5x the pairs, an open one ~3 ns to test).
+def _skin(prm) -> float:
+    """The grains' neighbour-list skin [m]: one grain radius (Simulation's default is a fifth:
+    the cone's spheres move half of that in ~10 DEM steps, so the lists rebuilt once an FE step
+    at 14-15 ms a build, 10k-grain window). Measured on the 3D chamber's 2 cm window, pushed,
+    200 DEM steps from one state: 4.45 ms a DEM step with the default skin, 3.54 / 3.47 / 3.27
+    ms with 2 / 3 / 5 times it (5 times lists 1.5x the pairs, an open one ~3 ns to test)."""
+    return prm.radius
 
 
 def _distributed_run(p, materials, walls, prm, radius, comm):
@@ -236,7 +242,7 @@ def _distributed_run(p, materials, walls, prm, radius, comm):
     # as the serial run, dt_factor scales the step after its check (force_dt)
     return DistributedSimulation(p if comm.rank == 0 else None, materials, walls, _gravity(prm),
                                  dt=dem_time_step(prm, radius) * prm.dt_factor, comm=comm,
-                                 force_dt=True, allow_overlap=True, skin=prm.radius, halo_skin=2 * prm.radius)
+                                 force_dt=True, allow_overlap=True, skin=_skin(prm), halo_skin=2 * prm.radius)
 
 
 class DemPenetration:
@@ -294,7 +300,7 @@ class DemPenetration:
             height = float(np.ptp(x[:, ax])) + 2 * prm.radius
         else:
             self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
-                                  dt=dem_time_step(prm, radius), allow_overlap=True, skin=prm.radius)
+                                  dt=dem_time_step(prm, radius), allow_overlap=True, skin=_skin(prm))
             self.sim.dt *= prm.dt_factor
             self.sim.compute_forces(update_history=False)
         self.clump_internal = self.clump_forces()
@@ -412,7 +418,7 @@ class CoupledPenetration:
         self.forces = prm.interface == "forces"
         self.distributed = False   # the push's grains split over the ranks (end of the set-up)
         self.sim = Simulation(p, materials, walls=walls, gravity=_gravity(prm),
-                              dt=dem_time_step(prm, radius), allow_overlap=True, skin=prm.radius,
+                              dt=dem_time_step(prm, radius), allow_overlap=True, skin=_skin(prm),
                               prescribed_pairs=not self.forces)
         self.sim.dt *= prm.dt_factor
         # the clump's own (constant) internal forces, to subtract from the penetrator's resultant
@@ -728,12 +734,13 @@ class CoupledPenetration:
         return MicropolarMaterial(**c, rho=prm.density * phi, j=0.4 * prm.radius**2), stats
 
     def _window_modulus(self, increment: float = 0.1) -> dict:
-        """The consolidated window's constrained (oedometric) modulus [Pa] in situ: the top
-        plate's stress raised by ``increment`` of the vertical stress, the grains relaxed (the
-        band held: no lateral strain at its edge), then the change of the inner region's
-        vertical Love-Weber stress over its vertical strain (the least-squares slope of the
-        grains' vertical displacement against height there); the grains and the plate are
-        put back as they were. Loading, not unloading: the far field is pushed by the cone."""
+        """The consolidated window's response in situ to the top plate's stress raised by
+        ``increment`` of the vertical stress, the grains relaxed (the band held: no lateral
+        strain at its edge): the inner region's Love-Weber stress change and its strain (the
+        least-squares affine fit of the grains' displacement there), the constrained modulus
+        (vertical stress over vertical strain) and lam, G of the isotropic law fitted to both;
+        the grains and the plate are put back as they were. Loading, not unloading: the far
+        field is pushed by the cone."""
         from dataclasses import replace as with_target
 
         from dem.control import mean_force_ratio
@@ -954,13 +961,7 @@ class CoupledPenetration:
         list and their rows in its local run (found again after each decomposition)."""
         sim = self.sim
         if self._ghost_rows is None or self._ghost_rows[0] is not sim.gid:
-            gid, rows = sim.gid, self.ghost_local
-            at = local = np.empty(0, np.int64)
-            if sim.local is not None and len(gid):
-                loc = np.minimum(np.searchsorted(gid, rows), len(gid) - 1)   # gid: sorted
-                mine = (gid[loc] == rows) & sim.owned[loc]
-                at, local = np.flatnonzero(mine), loc[mine]
-            self._ghost_rows = (gid, at, local)
+            self._ghost_rows = (sim.gid, *sim.owned_rows(self.ghost_local))
         return self._ghost_rows[1], self._ghost_rows[2]
 
     def _staggered_step(self, exchange, hook=None) -> dict:
@@ -1037,16 +1038,20 @@ class CoupledPenetration:
 
         comm, st = self.comm, self.stepper
         step = len(self.history)
-        # the grains: one file (distributed: each rank's part beside the positions, gathered)
-        grains = _dem_state(self.sim) if not self.distributed else {
-            "p.x": self.grain_state().x, **{f"rank.{k}": v for k, v in self.sim.state_dict().items()},
-            **{f"owner.{k}": getattr(self.owner, k) for k in ("axis", "cut", "below", "above")}}
+        # the grains: one file (distributed: the positions, gathered, and the cuts; each
+        # rank's part of the run in a file of its own)
+        if self.distributed:
+            part = self.sim.state_dict()
+            grains = {"p.x": self.grain_state().x,
+                      **{f"owner.{k}": getattr(self.owner, k) for k in ("axis", "cut", "below", "above")}}
+        else:
+            part, grains = None, _dem_state(self.sim)
 
         def files(tmp: Path) -> list[str]:
             own = []
-            if self.distributed:
+            if part is not None:
                 own = [f"grains_rank{comm.rank}_of{comm.size}.npz"]
-                np.savez(tmp / own[0], **{k[5:]: v for k, v in grains.items() if k.startswith("rank.")})
+                np.savez(tmp / own[0], **part)
             name = f"continuum_rank{comm.rank}_of{comm.size}.npz"
             np.savez(tmp / name, w=self.problem.w.x.array, w_old=st.w_old.x.array, v=st.v.x.array,
                      a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem.last_good,
@@ -1055,8 +1060,7 @@ class CoupledPenetration:
             if comm.rank != 0:
                 return [name] + own
             forces = {} if self.f0 is None else {"f0": self.f0, "f_applied": self.f_applied}
-            serial = {k: v for k, v in grains.items() if not k.startswith("rank.")}
-            np.savez(tmp / "grains.npz", **serial, x_ref=self.x_ref, pen0=self.pen0,
+            np.savez(tmp / "grains.npz", **grains, x_ref=self.x_ref, pen0=self.pen0,
                      g_prev_u=self.g_prev[0], g_prev_theta=self.g_prev[1], **forces)
             state = {"step": step, "depth": self.depth, "t": st.t,
                      "ranks": comm.size, "surface": self.surface,
@@ -1105,8 +1109,7 @@ class CoupledPenetration:
             except OSError as err:
                 raise FileNotFoundError(f"the checkpoint in {directory} has no grains of rank "
                                         f"{comm.rank} ({err}): written without distribute_grains?") from None
-            if len(grains["p.x"]) != self.sim.p.n:
-                raise ValueError(f"checkpoint holds {len(grains['p.x'])} particles, the simulation {self.sim.p.n}")
+            _check_particle_count(self.sim, grains)
         else:
             _load_dem_state(self.sim, grains)
         self.x_ref, self.pen0 = grains["x_ref"], grains["pen0"]
