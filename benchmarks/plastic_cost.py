@@ -79,6 +79,7 @@ import numpy as np
 from machine import cpu_model, machine
 
 from granfe.dynamics import GeneralizedAlpha
+from granfe.explicit import CentralDifference
 from granfe.materials import MicropolarMaterial
 from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
 from granfe.models.micropolar import Micropolar
@@ -107,6 +108,15 @@ parser.add_argument("--cases", nargs="+", choices=("static", "dynamic"), default
 parser.add_argument("--dynamic-h", type=float, nargs="+", default=[0.006] if SHORT else [0.006, 0.0045],
                     help="element sizes in the dynamic case's window [m] (one mesh each)")
 parser.add_argument("--dynamic-steps", type=int, default=3 if SHORT else 6, help="time steps of the dynamic case")
+parser.add_argument("--dynamic-E", type=float, nargs="+", default=[20e6, 1.2e6],
+                    help="Young's moduli of the dynamic case [Pa], one set of runs each: 20 MPa puts the "
+                         "P-wave 2.6 window elements a step (the affine constants' stiffness), 1.2 MPa "
+                         "(with --dynamic-nu 0.36) is the window's stiffness probed in situ "
+                         "(scenes/chamber_3d.toml: G 0.38-0.51 MPa, Poisson ratio 0.34-0.39)")
+parser.add_argument("--dynamic-nu", type=float, nargs="+", default=[0.25, 0.36],
+                    help="Poisson's ratios, one per --dynamic-E")
+parser.add_argument("--dynamic-variants", nargs="+", default=None,
+                    help="the dynamic variants to run (default all; elastic always)")
 args = parser.parse_args()
 comm = MPI.COMM_WORLD
 
@@ -237,26 +247,41 @@ BOX = dict(width=0.24, depth=0.084, window_width=0.06, window_depth=0.07)
 DT, SPEED, PUNCH = 1.4e-4, 1.0, 0.012        # [s], [m/s], radius of the pushed top nodes [m]
 E_D, NU_D, RHO_D, LENGTH_D = 20e6, 0.25, 1600.0, 3e-3
 S0 = (-44e3, -44e3, -100e3)                  # initial stress [Pa], tension positive
-G_D = E_D / (2 * (1 + NU_D))
-elastic_d = MicropolarMaterial(lam=E_D * NU_D / ((1 + NU_D) * (1 - 2 * NU_D)), mu=G_D - G_D / 4,
-                               kappa=G_D / 2, gamma=2 * G_D * LENGTH_D**2, rho=RHO_D, j=LENGTH_D**2)
-plastic_d = DruckerPragerMaterial(elastic_d, 0.0, 30.0, 0.0, hardening=2e6,
-                                  match="triaxial_compression", initial_stress=S0)
-# name: model, material, PETSc options, GeneralizedAlpha's tangent, Newton's absolute
-# tolerance in units of the coupled run's
-DYNAMIC = {"elastic": (Micropolar, elastic_d, {}, "elastic", 1.0),
-           "plastic_newton": (MicropolarDruckerPrager, plastic_d, {}, "consistent", 1.0),
-           "plastic_newton_one_lu": (MicropolarDruckerPrager, plastic_d, ONE_LU_PER_STEP, "consistent", 1.0),
-           "plastic_elastic_qn": (MicropolarDruckerPrager, plastic_d, {}, "elastic", 1.0),
-           "plastic_newton_tight": (MicropolarDruckerPrager, plastic_d, {}, "consistent", 1e-3),
-           "plastic_elastic_qn_tight": (MicropolarDruckerPrager, plastic_d, {}, "elastic", 1e-3)}
+FINE = 8                                     # the fine-dt reference's steps per step
 
 
-def dynamic_run(data, names, h: float, name: str, steps: int, tag: str) -> dict:
+def dynamic_materials(E: float, nu: float):
+    """The elastic and Drucker-Prager materials of the dynamic case (kappa = G / 2)."""
+    G = E / (2 * (1 + nu))
+    elastic = MicropolarMaterial(lam=E * nu / ((1 + nu) * (1 - 2 * nu)), mu=G - G / 4, kappa=G / 2,
+                                 gamma=2 * G * LENGTH_D**2, rho=RHO_D, j=LENGTH_D**2)
+    return elastic, DruckerPragerMaterial(elastic, 0.0, 30.0, 0.0, hardening=2e6,
+                                          match="triaxial_compression", initial_stress=S0)
+
+
+# name: plastic?, PETSc options, the stepper (GeneralizedAlpha's tangent, or "explicit":
+# granfe.explicit.CentralDifference), Newton's absolute tolerance in units of the coupled run's,
+# steps per step (the fine-dt references: their time-discretisation error is 1/64 of the others')
+DYNAMIC = {"elastic": (False, {}, "elastic", 1.0, 1),
+           "plastic_newton": (True, {}, "consistent", 1.0, 1),
+           "plastic_newton_one_lu": (True, ONE_LU_PER_STEP, "consistent", 1.0, 1),
+           "plastic_elastic_qn": (True, {}, "elastic", 1.0, 1),
+           "plastic_newton_tight": (True, {}, "consistent", 1e-3, 1),
+           "plastic_elastic_qn_tight": (True, {}, "elastic", 1e-3, 1),
+           "elastic_explicit": (False, {}, "explicit", 1.0, 1),
+           "plastic_explicit": (True, {}, "explicit", 1.0, 1),
+           "elastic_fine_dt": (False, {}, "elastic", 1e-3, FINE),
+           "plastic_fine_dt": (True, {}, "elastic", 1e-3, FINE)}
+
+
+def dynamic_run(data, names, h: float, E: float, name: str, steps: int, tag: str) -> dict:
     """The box chamber pushed at the cone's speed on the top nodes within PUNCH of the axis for
-    ``steps`` generalized-alpha steps (rho_inf 0.8, as the coupled run); per step the times
-    and iterations, per run the LU factorisations, the punch force and the final field."""
-    model, material, options, tangent, atol = DYNAMIC[name]
+    ``steps`` steps (generalized-alpha with rho_inf 0.8, as the coupled run, or explicit); per
+    step the times and iterations (explicit: substeps), per run the LU factorisations, the
+    punch force and the final field."""
+    plastic, options, tangent, atol, split = DYNAMIC[name]
+    elastic_m, plastic_m = dynamic_materials(E, NU_D)
+    model, material = (MicropolarDruckerPrager, plastic_m) if plastic else (Micropolar, elastic_m)
     # the coupled chamber's solver and Newton tolerance (a millionth of the nodal force the
     # initial stress puts on a window element)
     problem = ContinuumProblem(data.mesh, model(material), facet_tags=data.facet_tags, tag_names=names,
@@ -273,12 +298,14 @@ def dynamic_run(data, names, h: float, name: str, steps: int, tag: str) -> dict:
     problem.fix(punch, "u_x")
     problem.fix(punch, "u_y")
     settle = problem.fix(punch, "u_z", 0.0)
-    stepper = GeneralizedAlpha(problem, DT, rho_inf=0.8, tangent=tangent)
+    dt = DT / split
+    stepper = (CentralDifference(problem, dt) if tangent == "explicit"
+               else GeneralizedAlpha(problem, dt, rho_inf=0.8, tangent=tangent))
     factorisations = PETSc.Log.Event("MatLUFactorNum")
     lu0 = factorisations.getPerfInfo()["count"]
     times, cpu, its = [], [], []
-    for _ in range(steps):
-        settle.value = -SPEED * (stepper.t + DT)
+    for _ in range(steps * split):
+        settle.value = -SPEED * (stepper.t + dt)
         comm.barrier()
         t0, c0 = time.perf_counter(), time.process_time()
         its.append(stepper.step())
@@ -305,54 +332,74 @@ def dynamic_case() -> dict:
                    "thousandth of the absolute tolerance), against the elastic step "
                    "(one solve with the Jacobian factorised once, _AffineStep)",
            "inputs": {"box": BOX, "h_far": 0.03, "dt": DT, "speed": SPEED, "punch_radius": PUNCH,
-                      "steps": args.dynamic_steps, "rho_inf": 0.8,
-                      "E": E_D, "nu": NU_D, "density": RHO_D, "length": LENGTH_D,
+                      "steps": args.dynamic_steps, "rho_inf": 0.8, "fine_dt_split": FINE,
+                      "density": RHO_D, "length": LENGTH_D,
                       "kappa_over_G": 0.5, "friction_deg": 30.0, "dilatancy_deg": 0.0,
                       "cohesion": 0.0, "hardening": 2e6, "initial_stress": list(S0),
                       "solver": "redundant", "snes_atol": "1e-6 * 100 kPa * h_window^2 (the coupled run's)",
                       "ranks": comm.size, "short": SHORT},
            "meshes": []}
+    variants = ["elastic", *[v for v in (args.dynamic_variants or DYNAMIC) if v != "elastic"]]
     for h in args.dynamic_h:
-        before = machine()
         data = build_chamber(comm, 3, shape="box", h_window=h, h_far=0.03, **BOX)
         names = {k: tag for k, (d, tag) in data.physical_groups.items() if d == 2}
-        for name in DYNAMIC if h == args.dynamic_h[0] else ():    # compile the forms (not timed)
-            dynamic_run(data, names, h, name, 1, f"warm_{name}_{h:g}")
-        runs: dict[str, list] = {}
-        for rep in range(args.repeat):
-            for name in DYNAMIC:                          # interleaved: a busy spell hits all
-                runs.setdefault(name, []).append(
-                    dynamic_run(data, names, h, name, args.dynamic_steps, f"{name}{rep}_{h:g}"))
-        entry = {"h_window": h, "dofs": runs["elastic"][-1]["dofs"],
-                 "cells": comm.allreduce(data.mesh.topology.index_map(3).size_local, MPI.SUM),
-                 "repeat": args.repeat, "machine": before, "commit": subprocess.run(
-                     ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                     cwd=Path(__file__).parent).stdout.strip(),
-                 "load_average_1min_after": machine()["load_average_1min"]}
-        for name, rs in runs.items():
-            e = summarise_dynamic(rs)
-            if name != "elastic":
-                # the same answer as Newton's at the same tolerance: the largest difference of
-                # the fields at the end, relative to the largest value, and of the punch force
-                reference = runs["plastic_newton_tight" if name.endswith("_tight") else "plastic_newton"]
-                e["w_difference_vs_newton"] = max(
-                    comm.allreduce(float(np.abs(r["w"] - q["w"]).max()), MPI.MAX)
-                    / comm.allreduce(float(np.abs(q["w"]).max()), MPI.MAX) for r, q in zip(rs, reference, strict=True))
-                e["force_difference_vs_newton"] = max(abs(r["punch_force"] / q["punch_force"] - 1)
-                                                      for r, q in zip(rs, reference, strict=True))
-                for clock in ("s", "cpu_s"):
-                    e[f"step_{clock}_median_over_elastic"] = (e[f"step_{clock}_median"]
-                                                              / runs_median(runs["elastic"], clock))
-            entry[name] = e
-        out["meshes"].append(entry)
-        log(f"dynamic h {h:g}: {entry['dofs']} dofs; elastic step {1e3 * runs_median(runs['elastic'], 's'):.1f} ms")
-        for name in DYNAMIC:
-            e = entry[name]
-            log(f"  {name}: step median {e['step_s_median']:.3f} s (CPU {e['step_cpu_s_median']:.3f} s), "
-                f"x {e.get('step_s_median_over_elastic', 1.0):.1f} the elastic step, iterations "
-                f"{e['iterations']}, LU {e['lu_factorisations']}, yielding {100 * e['yielding_share']:.0f} %, "
-                f"force {e['punch_force']:.9g} N")
+        for E, nu in zip(args.dynamic_E, args.dynamic_nu, strict=True):
+            out["meshes"].append(dynamic_mesh(data, names, h, E, nu, variants, warm=not out["meshes"]))
     return out
+
+
+def dynamic_mesh(data, names, h: float, E: float, nu: float, variants: list[str], warm: bool) -> dict:
+    """Every variant on one mesh and material, interleaved over the repeats."""
+    before = machine()
+    for name in variants if warm else ():                    # compile the forms (not timed)
+        dynamic_run(data, names, h, E, name, 1, f"warm_{name}_{h:g}")
+    runs: dict[str, list] = {}
+    for rep in range(args.repeat):
+        for name in variants:                                # interleaved: a busy spell hits all
+            reps = 1 if DYNAMIC[name][4] > 1 else args.repeat    # a reference once
+            if rep < reps:
+                runs.setdefault(name, []).append(
+                    dynamic_run(data, names, h, E, name, args.dynamic_steps, f"{name}{rep}_{h:g}_{E:g}"))
+    entry = {"h_window": h, "E": E, "nu": nu, "dofs": runs["elastic"][-1]["dofs"],
+             "cells": comm.allreduce(data.mesh.topology.index_map(3).size_local, MPI.SUM),
+             "repeat": args.repeat, "machine": before, "commit": subprocess.run(
+                 ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                 cwd=Path(__file__).parent).stdout.strip(),
+             "load_average_1min_after": machine()["load_average_1min"]}
+
+    def difference(rs, reference):
+        """The largest difference of the fields at the end, relative to the largest value, and
+        of the punch force, over the repeats."""
+        pairs = list(zip(rs, reference, strict=False))
+        return (max(comm.allreduce(float(np.abs(r["w"] - q["w"]).max()), MPI.MAX)
+                    / comm.allreduce(float(np.abs(q["w"]).max()), MPI.MAX) for r, q in pairs),
+                max(abs(r["punch_force"] / q["punch_force"] - 1) for r, q in zip(rs, reference, strict=False)))
+
+    for name, rs in runs.items():
+        e = summarise_dynamic(rs)
+        plastic = DYNAMIC[name][0]
+        if plastic and "plastic_newton" in runs:
+            # the same answer as Newton's at the same tolerance (the implicit variants)
+            reference = runs["plastic_newton_tight" if name.endswith("_tight") else "plastic_newton"]
+            e["w_difference_vs_newton"], e["force_difference_vs_newton"] = difference(rs, reference)
+        fine = runs.get("plastic_fine_dt" if plastic else "elastic_fine_dt")
+        if fine and DYNAMIC[name][4] == 1:
+            # the time-discretisation error: against the same model at an eighth of the step
+            e["w_difference_vs_fine_dt"], e["force_difference_vs_fine_dt"] = difference(rs, fine * len(rs))
+        if name != "elastic":
+            for clock in ("s", "cpu_s"):
+                e[f"step_{clock}_median_over_elastic"] = (e[f"step_{clock}_median"]
+                                                          / runs_median(runs["elastic"], clock))
+        entry[name] = e
+    log(f"dynamic h {h:g}, E {E:g}: {entry['dofs']} dofs; elastic step "
+        f"{1e3 * runs_median(runs['elastic'], 's'):.1f} ms")
+    for name in runs:
+        e = entry[name]
+        log(f"  {name}: step median {e['step_s_median']:.3f} s (CPU {e['step_cpu_s_median']:.3f} s), "
+            f"x {e.get('step_cpu_s_median_over_elastic', 1.0):.1f} the elastic step (CPU), iterations "
+            f"{e['iterations'][:12]}, LU {e['lu_factorisations']}, yielding {100 * e['yielding_share']:.0f} %, "
+            f"force {e['punch_force']:.9g} N, vs fine dt {e.get('force_difference_vs_fine_dt', float('nan')):.2e}")
+    return entry
 
 
 def runs_median(runs: list[dict], clock: str) -> float:
@@ -422,14 +469,17 @@ if "static" in args.cases:
     results.update(static_case())
 if "dynamic" in args.cases:         # meshes measured now replace those of the same size
     new = dynamic_case()
-    sizes = {e["h_window"] for e in new["meshes"]}
-    kept = [e for e in results.get("dynamic", {}).get("meshes", []) if e["h_window"] not in sizes]
-    new["meshes"] = sorted(kept + new["meshes"], key=lambda e: -e["h_window"])
+    sizes = {(e["h_window"], e["E"]) for e in new["meshes"]}
+    kept = [e for e in results.get("dynamic", {}).get("meshes", [])
+            if (e["h_window"], e.get("E", E_D)) not in sizes]
+    new["meshes"] = sorted(kept + new["meshes"], key=lambda e: (-e["h_window"], -e.get("E", E_D)))
     results["dynamic"] = new
 if comm.rank == 0:
     args.out.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(results, indent=1))
 for entry in new["meshes"] if "dynamic" in args.cases else []:
-    assert entry["plastic_newton"]["yielding_share"] > 0.01, "the punch did not yield the soil"
     assert all(i == 1 for i in entry["elastic"]["iterations"])
-    assert entry["plastic_elastic_qn"]["fallbacks"] == 0
+    for name in ("plastic_newton", "plastic_explicit", "plastic_elastic_qn"):
+        if name in entry:
+            assert entry[name]["yielding_share"] > 0.01, "the punch did not yield the soil"
+            assert entry[name]["fallbacks"] == 0

@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import dolfinx_solver  # noqa: F401
 
+import numba
+import numpy as np
 import ufl
 
 from granfe.materials import MicropolarMaterial
@@ -321,3 +323,126 @@ class MicropolarDruckerPrager(Micropolar):
         return (c.lam / 2 * ufl.tr(eps_e) ** 2 + G * ufl.inner(sym_e, sym_e)
                 + c.kappa / 2 * ufl.inner(ufl.skew(eps_e), ufl.skew(eps_e))
                 + c.gamma / 2 * ufl.inner(kap_e, kap_e))
+
+    # ---- the same return at quadrature points (numba), for explicit steps -------------
+    # An explicit step needs the stress once per step, not its derivative: the kinematics
+    # evaluated at the points (one cheap expression), this loop, and the work of the stored
+    # stresses cost a third of the UFL return compiled into the residual and the state update
+    # (the 3D chamber's explicit step, benchmarks/plastic_cost.py). The loop is the UFL
+    # return's twin, line for line; tests/granfe/test_explicit.py holds them equal.
+    def point_kinematics(self, w):
+        """The flat UFL vector the point return reads: the strain (3 x 3, row-major; plane
+        strain with zeros out of plane), then the curvature (flat)."""
+        u, phi = w
+        gdim = ufl.shape(u)[0]
+        eps, kap = _to3(strain(u, phi), gdim), curvature(phi)
+        kap_flat = [kap[i] for i in range(2)] if gdim == 2 else [kap[i, j] for i in range(3) for j in range(3)]
+        return ufl.as_vector([eps[i, j] for i in range(3) for j in range(3)] + kap_flat)
+
+    def point_stress_shapes(self, gdim):
+        """Shapes of the stresses :meth:`point_return` gives: total force stress (3 x 3) and
+        couple stress (as the plastic curvature)."""
+        return {"sigma": (9,), "m": (2,) if gdim == 2 else (9,)}
+
+    def point_return(self, kinematics: np.ndarray, state: dict, new_state: dict, stresses: dict) -> None:
+        """The return mapping at P points: ``kinematics`` (P, 9 + nk) of
+        :meth:`point_kinematics` and the committed ``state`` (name -> (P, ...) arrays) fill
+        ``stresses`` (:meth:`point_stress_shapes`) and ``new_state`` (may be ``state``
+        itself: each point reads its own values before writing them)."""
+        c = self.constants
+        values = np.array([float(getattr(c, k).value) for k in
+                           ("lam", "mu", "kappa", "gamma", "A", "B", "k0", "H", "k_r", "s0_x", "s0_y", "s0_z")])
+        P = kinematics.shape[0]
+
+        def flat(a, n):
+            return a.reshape(P, n) if n else a.reshape(P)
+
+        nk = kinematics.shape[1] - 9
+        _return_points(kinematics, flat(state["plastic_strain"], 9), flat(state["plastic_curvature"], nk),
+                       flat(state["equivalent_plastic_strain"], 0), flat(state["yielding"], 0),
+                       values, bool(self.tangent_predictor), flat(stresses["sigma"], 9), flat(stresses["m"], nk),
+                       flat(new_state["plastic_strain"], 9), flat(new_state["plastic_curvature"], nk),
+                       flat(new_state["equivalent_plastic_strain"], 0), flat(new_state["yielding"], 0))
+
+    def point_work(self, stresses: dict, dw):
+        """The internal work of stored point stresses (quadrature functions of
+        :meth:`point_stress_shapes`) for test functions ``dw``: :meth:`internal_work`'s at the
+        fields they were returned from."""
+        gdim = ufl.shape(dw[0])[0]
+        s = stresses["sigma"]
+        sigma3 = ufl.as_matrix([[s[3 * i + j] for j in range(3)] for i in range(3)])
+        sigma = _from3(sigma3 - self._initial_stress(), gdim)
+        mq = stresses["m"]
+        m = ufl.as_vector([mq[0], mq[1]]) if gdim == 2 else ufl.as_matrix(
+            [[mq[3 * i + j] for j in range(3)] for i in range(3)])
+        return ufl.inner(sigma, strain(*dw)) + ufl.inner(m, curvature(dw[1]))
+
+
+@numba.njit(cache=True)
+def _return_points(kin, eps_p, kap_p, eq, yielding, c, predictor, sigma, m,
+                   eps_p_new, kap_p_new, eq_new, yielding_new):
+    """:meth:`MicropolarDruckerPrager._return` at every point (its comments say why); ``kin``
+    holds the strain (9) then the curvature (nk) of each point."""
+    lam, mu, kappa, gamma, A, B, k0, H, k_r = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8]
+    s0 = c[9:12]
+    G = mu + kappa / 2
+    K = lam + 2 * G / 3
+    l2 = gamma / (2 * G)
+    ps0 = (s0[0] + s0[1] + s0[2]) / 3
+    nk = kin.shape[1] - 9
+    e = np.empty(9)
+    s_tr = np.empty(9)
+    for q in range(kin.shape[0]):
+        for i in range(9):
+            e[i] = kin[q, i] - eps_p[q, i]
+        vol = e[0] + e[4] + e[8]
+        ss = 0.0
+        for i in range(3):
+            for j in range(3):
+                sym = 0.5 * (e[3 * i + j] + e[3 * j + i])
+                if i == j:
+                    s_tr[3 * i + j] = 2 * G * (sym - vol / 3) + (s0[i] - ps0)
+                else:
+                    s_tr[3 * i + j] = 2 * G * sym
+                ss += s_tr[3 * i + j] ** 2
+        mm = 0.0
+        for i in range(nk):
+            mm += (gamma * (kin[q, 9 + i] - kap_p[q, i])) ** 2
+        p_tr = K * vol + ps0
+        tau_tr = np.sqrt(0.5 * ss + 0.5 * mm / l2 + 1e-30)
+        k_lin = k0 + H * eq[q]
+        k = max(k_lin, k_r)
+        f_tr = tau_tr + A * p_tr - k
+        on_cone = 1e-12 * (abs(k) + abs(A * p_tr) + tau_tr)
+        plastic = f_tr > 0 or (predictor and yielding[q] > 0.5 and f_tr > -on_cone)
+        dl_cone = 0.0
+        if plastic:
+            dl_lin = (tau_tr + A * p_tr - k_lin) / (G + K * A * B + H)
+            dl_floor = (tau_tr + A * p_tr - k_r) / (G + K * A * B)
+            dl_cone = min(dl_lin, dl_floor)
+        apex = plastic and tau_tr - G * dl_cone < 0
+        Hb = H if k_lin > k_r else 0.0
+        stiff = K * A * B + Hb
+        if stiff > 0:
+            dl_apex = (A * p_tr - k) / max(stiff, 1e-300)
+            p_apex = p_tr - K * B * dl_apex
+        else:
+            dl_apex = (p_tr - k / max(A, 1e-300)) / K
+            p_apex = k / max(A, 1e-300)
+        if apex:
+            scale, dl, p = 0.0, dl_apex, p_apex
+        else:
+            scale, dl, p = 1 - G * dl_cone / tau_tr, dl_cone, p_tr - K * B * dl_cone
+        for i in range(3):
+            for j in range(3):
+                ij = 3 * i + j
+                skw = 0.5 * (e[ij] - e[3 * j + i])
+                sigma[q, ij] = scale * s_tr[ij] + kappa * skw + (p if i == j else 0.0)
+                eps_p_new[q, ij] = (eps_p[q, ij] + (1 - scale) * s_tr[ij] / (2 * G)
+                                    + ((p_tr - p) / (3 * K) if i == j else 0.0))
+        for i in range(nk):
+            ke = kin[q, 9 + i] - kap_p[q, i]
+            m[q, i] = scale * gamma * ke
+            kap_p_new[q, i] = kap_p[q, i] + (1 - scale) * ke
+        eq_new[q] = eq[q] + (dl + tau_tr / G if apex else dl)
+        yielding_new[q] = 1.0 if plastic else 0.0
