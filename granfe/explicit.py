@@ -85,10 +85,7 @@ class CentralDifference:
         self.a = fem.Function(V, name="acceleration")
         self._v0, self._a0 = fem.Function(V), fem.Function(V)
         dw = ufl.TestFunctions(V)
-        # a history model with a return at points (numba): the residual reads the stresses it
-        # stored; else the model's residual with its UFL return, and the state's commit
-        self._points = _PointStress(problem) if problem.state and hasattr(model, "point_return") else None
-        self._residual = self._points.residual if self._points else fem.form(problem.residual(), jit_options=jit)
+        self._forces = _forces(problem)
         ones = fem.Function(V)
         ones.x.array[:] = 1.0
         mass = fem.form(problem.weighted(model.inertia_work(problem.split(ones), dw)) * problem.dx,
@@ -173,10 +170,9 @@ class CentralDifference:
 
     # ---- stepping -------------------------------------------------------------------
     def initialize_acceleration(self) -> None:
-        """``a_0 = M_L^-1 (f_ext - f_int(w_0))`` (zero on Dirichlet dofs)."""
-        if self._points is not None:
-            self._points.update(commit=False)
-        self._accelerate(self.a.x.array)
+        """``a_0 = M_L^-1 (f_ext - f_int(w_0))`` (zero on Dirichlet dofs; the state stays)."""
+        self._forces.start()
+        self._accelerate(self.a.x.array, commit=False)
 
     def load_time(self) -> float:
         """The time of the step's end, at which the loads are held through its substeps."""
@@ -208,6 +204,7 @@ class CentralDifference:
         v[:] = self._v0.x.array
         a[:] = self._a0.x.array
         self._restore_state()
+        self._forces.start()
         rate = (end[fixed] - w0[fixed]) / dt
         try:
             for j in range(1, k + 1):
@@ -215,11 +212,7 @@ class CentralDifference:
                 w += h * v
                 w[fixed] = w0[fixed] + (j / k) * (end[fixed] - w0[fixed])
                 v[fixed] = rate
-                if self._points is not None:
-                    self._points.update()      # the return mapping of this substep's fields
-                elif problem.state:
-                    problem.state.commit()
-                self._accelerate(a, fixed)
+                self._accelerate(a, fixed)     # the return of this substep's fields, committed
                 v += 0.5 * h * a
                 if not np.isfinite(a).all():
                     raise FloatingPointError(f"CentralDifference: non-finite acceleration at "
@@ -229,6 +222,7 @@ class CentralDifference:
             problem.w.x.scatter_forward()
             self._restore_state()
             raise
+        self._forces.finish()
         self.substeps = k
         return k
 
@@ -267,86 +261,141 @@ class CentralDifference:
             state.committed[name].x.array[:] = values
             state.trial[name].x.array[:] = values
 
-    def _accelerate(self, a: np.ndarray, fixed: np.ndarray | None = None) -> None:
+    def _accelerate(self, a: np.ndarray, fixed: np.ndarray | None = None, commit: bool = True) -> None:
         """``a = -M_L^-1 r(w)`` with r the residual (internal minus external forces), zero on
-        the Dirichlet dofs; owned and ghost entries."""
-        from dolfinx.fem.petsc import assemble_vector
-
+        the Dirichlet dofs; owned and ghost entries. With ``commit`` the state the return
+        reached is committed."""
         self.problem.w.x.scatter_forward()
-        b = self._b.x.petsc_vec
-        with b.localForm() as loc:
-            loc.set(0.0)
-        assemble_vector(b, self._residual)
-        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        self._forces.residual(self._b.x.petsc_vec, commit)
         a[:] = -self._b.x.array / self.mass
         a[self._fixed_dofs() if fixed is None else fixed] = 0.0
 
 
-class _PointStress:
-    """A history model's return mapping at the quadrature points (the model's
-    ``point_kinematics``, ``point_return``, ``point_work``): the kinematics evaluated at the
-    owned cells' points, the return, the new state written as committed (and trial), the
-    stresses into quadrature functions that the residual integrates."""
+def _forces(problem: ContinuumProblem):
+    """The cheapest residual the model allows: the fused simplex kernel (degree-1 simplices,
+    a model with ``simplex_forces``), else the model's UFL residual with the state's
+    commit."""
+    if problem.state and hasattr(problem.model, "simplex_forces") and SimplexCells.fits(problem):
+        return _SimplexForces(problem)
+    return _FormForces(problem)
+
+
+def _assemble_into(b: PETSc.Vec, form) -> None:
+    from dolfinx.fem.petsc import assemble_vector
+
+    with b.localForm() as loc:
+        loc.set(0.0)
+    assemble_vector(b, form)
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+
+
+class _FormForces:
+    """The model's residual form (its UFL return, if any, from the committed state), the
+    state committed before it is assembled."""
 
     def __init__(self, problem: ContinuumProblem):
-        import basix.ufl
-
-        model, state, jit = problem.model, problem.state, problem.jit_options
-        domain = problem.domain
         self.problem = problem
-        Q = next(iter(state.committed.values())).function_space
-        self.expression = fem.Expression(model.point_kinematics(problem.split(problem.w)),
-                                         Q.element.interpolation_points, jit_options=jit)
-        tdim = domain.topology.dim
-        self.cells = np.arange(domain.topology.index_map(tdim).size_local, dtype=np.int32)
-        self.stresses = {}
-        for name, shape in model.point_stress_shapes(problem.gdim).items():
-            S = fem.functionspace(domain, basix.ufl.quadrature_element(
-                domain.basix_cell(), value_shape=shape, degree=state.degree))
-            self.stresses[name] = fem.Function(S, name=f"point_{name}")
+        self.form = fem.form(problem.residual(), jit_options=problem.jit_options)
+
+    def start(self) -> None:
+        pass
+
+    def finish(self) -> None:
+        pass
+
+    def residual(self, b: PETSc.Vec, commit: bool) -> None:
+        if commit and self.problem.state:
+            self.problem.state.commit()
+        _assemble_into(b, self.form)
+
+
+class SimplexCells:
+    """The geometry a fused force kernel needs on degree-1 simplices (affine cells), owned
+    cells only: per cell the basis gradients (vertices x gdim, constant on a simplex), the
+    quadrature weights times |det J| times the partition weight at the points, the basis at
+    the points (the problem's quadrature), and per field the local dofs (vertices x
+    components)."""
+
+    @staticmethod
+    def fits(problem: ContinuumProblem) -> bool:
+        domain = problem.domain
+        return (domain.topology.cell_type.name in ("triangle", "tetrahedron")
+                and domain.geometry.cmaps[0].degree == 1 and all(d == 1 for d in problem.degree))
+
+    def __init__(self, problem: ContinuumProblem):
+        import basix
+
+        domain, V = problem.domain, problem.V
+        self.gdim, tdim = problem.gdim, domain.topology.dim
+        nc = domain.topology.index_map(tdim).size_local
+        X = domain.geometry.x[domain.geometry.dofmaps[0][:nc]][:, :, :self.gdim]
+        J = np.swapaxes(X[:, 1:, :] - X[:, :1, :], 1, 2)          # dx_i / dxi_j
+        reference = np.vstack([-np.ones((1, tdim)), np.eye(tdim)])  # dN_a / dxi_j
+        self.grads = np.ascontiguousarray(reference @ np.linalg.inv(J))   # (cells, vertices, gdim)
+        points, weights = basix.make_quadrature(domain.basix_cell(), problem.state.degree)
+        state_points = next(iter(problem.state.committed.values())).function_space.element.interpolation_points
+        if not np.allclose(points, state_points, rtol=0, atol=1e-14):
+            raise RuntimeError("SimplexCells: basix's quadrature is not the state's")
+        self.N = np.hstack([1 - points.sum(axis=1, keepdims=True), points])
+        wdet = weights[None, :] * np.abs(np.linalg.det(J))[:, None]
+        if problem.weight is not None:         # fixed once set (ContinuumProblem.set_weight)
+            cells = np.arange(nc, dtype=np.int32)
+            wdet = wdet * fem.Expression(problem.weight, points).eval(domain, cells).reshape(nc, -1)
+        self.wdet = np.ascontiguousarray(wdet)
+        self.dofs = {}
+        for i, field in enumerate(problem.fields):
+            sub = V.sub(i)
+            lists = ([sub.sub(k).dofmap.list[:nc] for k in range(len(field.components))]
+                     if field.shape else [sub.dofmap.list[:nc]])
+            self.dofs[field.name] = np.ascontiguousarray(np.stack(lists, axis=2)).astype(np.int64)
+
+
+class _SimplexForces:
+    """The model's fused simplex kernel (``simplex_forces``): kinematics, the return and the
+    element forces in one pass over the owned cells, the state updated in place; the loads
+    assembled once a step (they are held through its substeps)."""
+
+    def __init__(self, problem: ContinuumProblem):
+        self.problem = problem
+        self.cells = SimplexCells(problem)
         dw = ufl.TestFunctions(problem.V)
-        F = problem.weighted(model.point_work(self.stresses, dw)) * problem.dx
         L = problem.external_work(dw)
-        self.residual = fem.form(F - L if L != 0 else F, jit_options=jit)
-        self._rows = {}
-        for f in (*state.committed.values(), *self.stresses.values()):
-            rows = f.function_space.dofmap.list[:len(self.cells)].ravel()
-            self._rows[id(f)] = (rows, f.function_space.dofmap.index_map_bs,
-                                 bool(np.array_equal(rows, np.arange(len(rows)))))
-        self._scratch = {name: np.empty_like(self._owned(f)) for name, f in state.committed.items()}
+        self.load_form = None if L == 0 else fem.form(L, jit_options=problem.jit_options)
+        self.load = None
+        state = problem.state
+        npts = self.cells.wdet.size
+        self.views = {}
+        for name, f in state.committed.items():
+            bs = f.function_space.dofmap.index_map_bs
+            rows = f.function_space.dofmap.list[:self.cells.wdet.shape[0]].ravel()
+            if not np.array_equal(rows, np.arange(npts)):
+                raise RuntimeError(f"_SimplexForces: the quadrature dofs of {name!r} are not in cell order")
+            self.views[name] = f.x.array[:npts * bs].reshape(npts, bs)
+        self.scratch = {name: np.empty_like(v) for name, v in self.views.items()}
+        self.local = None
 
-    def _owned(self, f: fem.Function) -> np.ndarray:
-        """The owned cells' point values of a quadrature function, (points, bs): a view where
-        the dofs of the owned cells run in order (dolfinx numbers a quadrature space so),
-        else a copy (then :meth:`_put` writes back)."""
-        rows, bs, in_order = self._rows[id(f)]
-        if in_order:
-            return f.x.array[:len(rows) * bs].reshape(len(rows), bs)
-        return f.x.array.reshape(-1, bs)[rows]
+    def start(self) -> None:
+        if self.load_form is not None:
+            if self.load is None:
+                self.load = fem.Function(self.problem.V)
+            _assemble_into(self.load.x.petsc_vec, self.load_form)
 
-    def _put(self, f: fem.Function, values: np.ndarray) -> None:
-        rows, bs, in_order = self._rows[id(f)]
-        if not in_order:
-            f.x.array.reshape(-1, bs)[rows] = values
-        f.x.scatter_forward()
+    def finish(self) -> None:
+        for f in self.problem.state.committed.values():     # the ghost cells' from their owners
+            f.x.scatter_forward()
 
-    def update(self, commit: bool = True) -> None:
-        """The stresses of the current fields from the committed state; with ``commit`` the
-        returned state becomes the committed one (the trial state, which lives only between a
-        state's evaluate and commit, is left alone). Collective."""
-        kinematics = self.expression.eval(self.problem.domain, self.cells)
-        kinematics = kinematics.reshape(-1, self.expression.value_size)
-        state = self.problem.state
-        old = {name: self._owned(f) for name, f in state.committed.items()}
-        new = old if commit else self._scratch
-        stresses = {name: self._owned(f) for name, f in self.stresses.items()}
-        self.problem.model.point_return(kinematics, old, new, stresses)
-        for name, f in self.stresses.items():
-            self._put(f, stresses[name])
-        if commit:
-            for name, f in state.committed.items():
-                self._put(f, new[name])
+    def residual(self, b: PETSc.Vec, commit: bool) -> None:
+        with b.localForm() as loc:
+            f = loc.array_w
+            f[:] = 0.0
+            new = self.views if commit else self.scratch
+            self.problem.model.simplex_forces(self.cells, self.problem.w.x.array, self.views, new, f)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        if self.load is not None:
+            n = len(b.array)
+            b.array_w[:] -= self.load.x.array[:n]
+        b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
 
 def _assembled(form) -> np.ndarray:

@@ -34,6 +34,7 @@ the elastic continuum around a consolidated DE window.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -324,125 +325,191 @@ class MicropolarDruckerPrager(Micropolar):
                 + c.kappa / 2 * ufl.inner(ufl.skew(eps_e), ufl.skew(eps_e))
                 + c.gamma / 2 * ufl.inner(kap_e, kap_e))
 
-    # ---- the same return at quadrature points (numba), for explicit steps -------------
-    # An explicit step needs the stress once per step, not its derivative: the kinematics
-    # evaluated at the points (one cheap expression), this loop, and the work of the stored
-    # stresses cost a third of the UFL return compiled into the residual and the state update
-    # (the 3D chamber's explicit step, benchmarks/plastic_cost.py). The loop is the UFL
-    # return's twin, line for line; tests/granfe/test_explicit.py holds them equal.
-    def point_kinematics(self, w):
-        """The flat UFL vector the point return reads: the strain (3 x 3, row-major; plane
-        strain with zeros out of plane), then the curvature (flat)."""
-        u, phi = w
-        gdim = ufl.shape(u)[0]
-        eps, kap = _to3(strain(u, phi), gdim), curvature(phi)
-        kap_flat = [kap[i] for i in range(2)] if gdim == 2 else [kap[i, j] for i in range(3) for j in range(3)]
-        return ufl.as_vector([eps[i, j] for i in range(3) for j in range(3)] + kap_flat)
-
-    def point_stress_shapes(self, gdim):
-        """Shapes of the stresses :meth:`point_return` gives: total force stress (3 x 3) and
-        couple stress (as the plastic curvature)."""
-        return {"sigma": (9,), "m": (2,) if gdim == 2 else (9,)}
-
-    def point_return(self, kinematics: np.ndarray, state: dict, new_state: dict, stresses: dict) -> None:
-        """The return mapping at P points: ``kinematics`` (P, 9 + nk) of
-        :meth:`point_kinematics` and the committed ``state`` (name -> (P, ...) arrays) fill
-        ``stresses`` (:meth:`point_stress_shapes`) and ``new_state`` (may be ``state``
-        itself: each point reads its own values before writing them)."""
+    # ---- the same return in a fused kernel (numba), for explicit steps ----------------
+    # An explicit step needs the stress once per step, not its derivative: on degree-1
+    # simplices one pass over the cells (kinematics, this return, the element forces) costs
+    # a fraction of the UFL return compiled into the residual and the state update
+    # (benchmarks/plastic_cost.py). The return in _element_forces is the UFL return's twin,
+    # line for line; tests/granfe/test_explicit.py holds them equal on every branch.
+    def _point_constants(self) -> np.ndarray:
         c = self.constants
-        values = np.array([float(getattr(c, k).value) for k in
-                           ("lam", "mu", "kappa", "gamma", "A", "B", "k0", "H", "k_r", "s0_x", "s0_y", "s0_z")])
-        P = kinematics.shape[0]
+        return np.array([float(getattr(c, k).value) for k in
+                         ("lam", "mu", "kappa", "gamma", "A", "B", "k0", "H", "k_r", "s0_x", "s0_y", "s0_z")])
+
+    def simplex_forces(self, cells, w: np.ndarray, state: dict, new_state: dict, f: np.ndarray) -> None:
+        """The internal forces on degree-1 simplices in one pass (kinematics, return, element
+        forces), added into ``f`` (local dofs): what :meth:`point_work` assembles after
+        :meth:`point_return`, without the quadrature functions between them. ``cells``: the
+        geometry of :class:`granfe.explicit.SimplexCells`; ``state`` / ``new_state`` as for
+        :meth:`point_return`, rows in the order of the cells' points."""
+        nk = 2 if cells.gdim == 2 else 9
+        P = cells.wdet.size
 
         def flat(a, n):
             return a.reshape(P, n) if n else a.reshape(P)
 
-        nk = kinematics.shape[1] - 9
-        _return_points(kinematics, flat(state["plastic_strain"], 9), flat(state["plastic_curvature"], nk),
-                       flat(state["equivalent_plastic_strain"], 0), flat(state["yielding"], 0),
-                       values, bool(self.tangent_predictor), flat(stresses["sigma"], 9), flat(stresses["m"], nk),
-                       flat(new_state["plastic_strain"], 9), flat(new_state["plastic_curvature"], nk),
-                       flat(new_state["equivalent_plastic_strain"], 0), flat(new_state["yielding"], 0))
-
-    def point_work(self, stresses: dict, dw):
-        """The internal work of stored point stresses (quadrature functions of
-        :meth:`point_stress_shapes`) for test functions ``dw``: :meth:`internal_work`'s at the
-        fields they were returned from."""
-        gdim = ufl.shape(dw[0])[0]
-        s = stresses["sigma"]
-        sigma3 = ufl.as_matrix([[s[3 * i + j] for j in range(3)] for i in range(3)])
-        sigma = _from3(sigma3 - self._initial_stress(), gdim)
-        mq = stresses["m"]
-        m = ufl.as_vector([mq[0], mq[1]]) if gdim == 2 else ufl.as_matrix(
-            [[mq[3 * i + j] for j in range(3)] for i in range(3)])
-        return ufl.inner(sigma, strain(*dw)) + ufl.inner(m, curvature(dw[1]))
+        _element_forces_kernel(cells.gdim)(cells.grads, cells.wdet, cells.N, cells.dofs["u"], cells.dofs["phi"], w,
+                        self._point_constants(), bool(self.tangent_predictor),
+                        flat(state["plastic_strain"], 9), flat(state["plastic_curvature"], nk),
+                        flat(state["equivalent_plastic_strain"], 0), flat(state["yielding"], 0),
+                        flat(new_state["plastic_strain"], 9), flat(new_state["plastic_curvature"], nk),
+                        flat(new_state["equivalent_plastic_strain"], 0), flat(new_state["yielding"], 0), f)
 
 
-@numba.njit(cache=True)
-def _return_points(kin, eps_p, kap_p, eq, yielding, c, predictor, sigma, m,
-                   eps_p_new, kap_p_new, eq_new, yielding_new):
-    """:meth:`MicropolarDruckerPrager._return` at every point (its comments say why); ``kin``
-    holds the strain (9) then the curvature (nk) of each point."""
-    lam, mu, kappa, gamma, A, B, k0, H, k_r = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8]
-    s0 = c[9:12]
-    G = mu + kappa / 2
-    K = lam + 2 * G / 3
-    l2 = gamma / (2 * G)
-    ps0 = (s0[0] + s0[1] + s0[2]) / 3
-    nk = kin.shape[1] - 9
-    e = np.empty(9)
-    s_tr = np.empty(9)
-    for q in range(kin.shape[0]):
-        for i in range(9):
-            e[i] = kin[q, i] - eps_p[q, i]
-        vol = e[0] + e[4] + e[8]
-        ss = 0.0
-        for i in range(3):
-            for j in range(3):
-                sym = 0.5 * (e[3 * i + j] + e[3 * j + i])
-                if i == j:
-                    s_tr[3 * i + j] = 2 * G * (sym - vol / 3) + (s0[i] - ps0)
+@functools.cache
+def _element_forces_kernel(gdim: int):  # noqa: C901
+    """:func:`_element_forces` compiled for ``gdim`` (2 or 3) as a constant: the loops over
+    vertices, components and points have fixed trip counts and unroll (the 3D chamber's
+    kernel 2x faster than with the dimension read from the arrays). Each dimension's kernel
+    is cached under its own name (numba keys its disk cache by the function's name)."""
+
+    def _element_forces(grads, wdet, N, dofs_u, dofs_phi, w, c, predictor, eps_p, kap_p, eq,  # noqa: C901
+                        yielding, eps_p_new, kap_p_new, eq_new, yielding_new, f):
+        """The internal forces of the micropolar Drucker-Prager continuum on degree-1 simplices,
+        the return at each point from the committed state: added into ``f`` (the local dofs).
+
+        Per cell ``c``: the basis gradients ``grads[c]`` (vertices x gdim, constant on a
+        simplex), ``wdet[c]`` the quadrature weights times |det J| (and the partition weight),
+        ``N`` the basis at the points (points x vertices), ``dofs_u[c]`` / ``dofs_phi[c]``
+        (vertices x components) the local dofs of u and phi. The state arrays hold point
+        ``c * points + q`` in row ``c * points + q``. Strain ``grad u + e.phi``, curvature
+        ``grad phi`` (:mod:`granfe.models.micropolar`), the work of ``sigma - sigma_0``. The new
+        state may overwrite the old: each value is read before it is written."""
+        nc = grads.shape[0]
+        nv = gdim + 1
+        nq = N.shape[0]
+        nphi = 1 if gdim == 2 else 3
+        nk = nphi * gdim
+        lam, mu, kappa, gamma, A, B, k0, H, k_r = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8]
+        G = mu + kappa / 2
+        K = lam + 2 * G / 3
+        l2 = gamma / (2 * G)
+        ps0 = (c[9] + c[10] + c[11]) / 3
+        kin, sig, m = np.empty((1, 9 + nk)), np.empty((1, 9)), np.empty((1, nk))
+        e, s_tr = np.empty(9), np.empty(9)
+        gu = np.zeros(9)
+        phi, t = np.zeros(3), np.zeros(3)
+        S, Msum, T = np.zeros(9), np.zeros(nk), np.zeros((nv, nphi))
+        for cell in range(nc):
+            for i in range(9):
+                gu[i] = 0.0
+                S[i] = 0.0
+            for i in range(nk):
+                Msum[i] = 0.0
+            T[:, :] = 0.0
+            for i in range(gdim):
+                for j in range(gdim):
+                    acc = 0.0
+                    for a in range(nv):
+                        acc += w[dofs_u[cell, a, i]] * grads[cell, a, j]
+                    gu[3 * i + j] = acc
+            for i in range(nphi):
+                for j in range(gdim):
+                    acc = 0.0
+                    for a in range(nv):
+                        acc += w[dofs_phi[cell, a, i]] * grads[cell, a, j]
+                    kin[0, 9 + i * gdim + j] = acc
+            for qi in range(nq):
+                for kk in range(nphi):
+                    acc = 0.0
+                    for a in range(nv):
+                        acc += N[qi, a] * w[dofs_phi[cell, a, kk]]
+                    phi[kk] = acc
+                for i in range(9):
+                    kin[0, i] = gu[i]
+                if gdim == 2:
+                    kin[0, 1] += phi[0]
+                    kin[0, 3] -= phi[0]
                 else:
-                    s_tr[3 * i + j] = 2 * G * sym
-                ss += s_tr[3 * i + j] ** 2
-        mm = 0.0
-        for i in range(nk):
-            mm += (gamma * (kin[q, 9 + i] - kap_p[q, i])) ** 2
-        p_tr = K * vol + ps0
-        tau_tr = np.sqrt(0.5 * ss + 0.5 * mm / l2 + 1e-30)
-        k_lin = k0 + H * eq[q]
-        k = max(k_lin, k_r)
-        f_tr = tau_tr + A * p_tr - k
-        on_cone = 1e-12 * (abs(k) + abs(A * p_tr) + tau_tr)
-        plastic = f_tr > 0 or (predictor and yielding[q] > 0.5 and f_tr > -on_cone)
-        dl_cone = 0.0
-        if plastic:
-            dl_lin = (tau_tr + A * p_tr - k_lin) / (G + K * A * B + H)
-            dl_floor = (tau_tr + A * p_tr - k_r) / (G + K * A * B)
-            dl_cone = min(dl_lin, dl_floor)
-        apex = plastic and tau_tr - G * dl_cone < 0
-        Hb = H if k_lin > k_r else 0.0
-        stiff = K * A * B + Hb
-        if stiff > 0:
-            dl_apex = (A * p_tr - k) / max(stiff, 1e-300)
-            p_apex = p_tr - K * B * dl_apex
-        else:
-            dl_apex = (p_tr - k / max(A, 1e-300)) / K
-            p_apex = k / max(A, 1e-300)
-        if apex:
-            scale, dl, p = 0.0, dl_apex, p_apex
-        else:
-            scale, dl, p = 1 - G * dl_cone / tau_tr, dl_cone, p_tr - K * B * dl_cone
-        for i in range(3):
-            for j in range(3):
-                ij = 3 * i + j
-                skw = 0.5 * (e[ij] - e[3 * j + i])
-                sigma[q, ij] = scale * s_tr[ij] + kappa * skw + (p if i == j else 0.0)
-                eps_p_new[q, ij] = (eps_p[q, ij] + (1 - scale) * s_tr[ij] / (2 * G)
-                                    + ((p_tr - p) / (3 * K) if i == j else 0.0))
-        for i in range(nk):
-            ke = kin[q, 9 + i] - kap_p[q, i]
-            m[q, i] = scale * gamma * ke
-            kap_p_new[q, i] = kap_p[q, i] + (1 - scale) * ke
-        eq_new[q] = eq[q] + (dl + tau_tr / G if apex else dl)
-        yielding_new[q] = 1.0 if plastic else 0.0
+                    kin[0, 1] += phi[2]
+                    kin[0, 2] -= phi[1]
+                    kin[0, 3] -= phi[2]
+                    kin[0, 5] += phi[0]
+                    kin[0, 6] += phi[1]
+                    kin[0, 7] -= phi[0]
+                # the return at point q (MicropolarDruckerPrager._return; its comments say why),
+                # inline: a call per point passing arrays costs ~0.4 us in reference counts (10x)
+                q = cell * nq + qi
+                for i in range(9):
+                    e[i] = kin[0, i] - eps_p[q, i]
+                vol = e[0] + e[4] + e[8]
+                ss = 0.0
+                for i in range(3):
+                    for j in range(3):
+                        sym = 0.5 * (e[3 * i + j] + e[3 * j + i])
+                        if i == j:
+                            s_tr[3 * i + j] = 2 * G * (sym - vol / 3) + (c[9 + i] - ps0)
+                        else:
+                            s_tr[3 * i + j] = 2 * G * sym
+                        ss += s_tr[3 * i + j] ** 2
+                mm = 0.0
+                for i in range(nk):
+                    mm += (gamma * (kin[0, 9 + i] - kap_p[q, i])) ** 2
+                p_tr = K * vol + ps0
+                tau_tr = np.sqrt(0.5 * ss + 0.5 * mm / l2 + 1e-30)
+                k_lin = k0 + H * eq[q]
+                k = max(k_lin, k_r)
+                f_tr = tau_tr + A * p_tr - k
+                on_cone = 1e-12 * (abs(k) + abs(A * p_tr) + tau_tr)
+                plastic = f_tr > 0 or (predictor and yielding[q] > 0.5 and f_tr > -on_cone)
+                dl_cone = 0.0
+                if plastic:
+                    dl_lin = (tau_tr + A * p_tr - k_lin) / (G + K * A * B + H)
+                    dl_floor = (tau_tr + A * p_tr - k_r) / (G + K * A * B)
+                    dl_cone = min(dl_lin, dl_floor)
+                apex = plastic and tau_tr - G * dl_cone < 0
+                Hb = H if k_lin > k_r else 0.0
+                stiff = K * A * B + Hb
+                if stiff > 0:
+                    dl_apex = (A * p_tr - k) / max(stiff, 1e-300)
+                    p_apex = p_tr - K * B * dl_apex
+                else:
+                    dl_apex = (p_tr - k / max(A, 1e-300)) / K
+                    p_apex = k / max(A, 1e-300)
+                if apex:
+                    scale, dl, p = 0.0, dl_apex, p_apex
+                else:
+                    scale, dl, p = 1 - G * dl_cone / tau_tr, dl_cone, p_tr - K * B * dl_cone
+                for i in range(3):
+                    for j in range(3):
+                        ij = 3 * i + j
+                        skw = 0.5 * (e[ij] - e[3 * j + i])
+                        sig[0, ij] = scale * s_tr[ij] + kappa * skw + (p if i == j else 0.0)
+                        eps_p_new[q, ij] = (eps_p[q, ij] + (1 - scale) * s_tr[ij] / (2 * G)
+                                            + ((p_tr - p) / (3 * K) if i == j else 0.0))
+                for i in range(nk):
+                    ke = kin[0, 9 + i] - kap_p[q, i]
+                    m[0, i] = scale * gamma * ke
+                    kap_p_new[q, i] = kap_p[q, i] + (1 - scale) * ke
+                eq_new[q] = eq[q] + (dl + tau_tr / G if apex else dl)
+                yielding_new[q] = 1.0 if plastic else 0.0
+                for i in range(3):
+                    sig[0, 4 * i] -= c[9 + i]                  # the work of the increment
+                # the gradients are constant on the cell: sum the weighted stresses over its
+                # points and contract once (the rotation's term needs the basis at each point)
+                wq = wdet[cell, qi]
+                for i in range(9):
+                    S[i] += wq * sig[0, i]
+                for i in range(nk):
+                    Msum[i] += wq * m[0, i]
+                if gdim == 2:
+                    t[0] = sig[0, 1] - sig[0, 3]
+                else:
+                    t[0], t[1], t[2] = sig[0, 5] - sig[0, 7], sig[0, 6] - sig[0, 2], sig[0, 1] - sig[0, 3]
+                for a in range(nv):
+                    for kk in range(nphi):
+                        T[a, kk] += wq * N[qi, a] * t[kk]
+            for a in range(nv):
+                for i in range(gdim):
+                    acc = 0.0
+                    for j in range(gdim):
+                        acc += S[3 * i + j] * grads[cell, a, j]
+                    f[dofs_u[cell, a, i]] += acc
+                for i in range(nphi):
+                    acc = T[a, i]
+                    for j in range(gdim):
+                        acc += Msum[i * gdim + j] * grads[cell, a, j]
+                    f[dofs_phi[cell, a, i]] += acc
+
+    _element_forces.__qualname__ = _element_forces.__name__ = f"_element_forces_{gdim}d"
+    return numba.njit(cache=True)(_element_forces)

@@ -159,44 +159,6 @@ def _points_and_ufl(gdim, material):
     return p
 
 
-@pytest.mark.parametrize("gdim", [2, 3])
-@pytest.mark.parametrize("hardening", [2e6, -1e6, 0.0])
-def test_point_return_is_the_ufl_return(gdim, hardening):
-    """The numba return (explicit steps) gives the UFL return's stresses and state to
-    round-off at points on every branch: elastic, cone (hardening, softening to the floor),
-    apex."""
-    from granfe.explicit import _PointStress
-
-    material = replace(PLASTIC, hardening=hardening, residual_cohesion=200.0 if hardening < 0 else 0.0,
-                       match="plane_strain" if gdim == 2 else "triaxial_compression",
-                       initial_stress=(-60e3, -100e3, -60e3) if gdim == 2 else S0)
-    p = _points_and_ufl(gdim, material)
-    model, state = p.model, p.state
-    points = _PointStress(p)
-    cells = points.cells
-    X = points.stresses["sigma"].function_space.element.interpolation_points
-    ufl_stress = model.stresses(p.split(p.w), state.committed)
-    expected = {name: fem.Expression(ufl_stress[key], X).eval(p.domain, cells).reshape(len(cells), -1)
-                for name, key in (("sigma", "sigma"), ("m", "couple_stress"))}
-    state.evaluate()                                   # the UFL trial state
-    expected_state = {k: f.x.array.copy() for k, f in state.trial.items()}
-    points.update(commit=True)                          # the numba return, committed
-    yielding = expected_state["yielding"]
-    assert 0.1 < yielding.mean() < 0.95, yielding.mean()
-    assert expected_state["equivalent_plastic_strain"].max() > 0
-    for name, value in expected_state.items():
-        got = state.committed[name].x.array
-        assert np.abs(got - value).max() <= 1e-9 * max(np.abs(value).max(), 1e-12), name
-    npts = X.shape[0]
-    sigma = points.stresses["sigma"].x.array.reshape(len(cells), npts, 3, 3)[:, :, :gdim, :gdim]
-    m = points.stresses["m"].x.array.reshape(len(cells), npts, -1)
-    for name, got in (("sigma", sigma), ("m", m)):
-        want = expected[name]
-        assert np.abs(got.reshape(want.shape) - want).max() <= 1e-9 * np.abs(want).max(), name
-    if hardening == 0.0:          # cohesion 1 kPa without hardening: some points at the apex
-        assert (np.abs(m).reshape(len(cells) * npts, -1).max(axis=1) == 0).any()
-
-
 def _plastic_block(n=(4, 4, 2), comm=MPI.COMM_WORLD, prefix="pb_"):
     return block(MicropolarDruckerPrager(PLASTIC), n=n, comm=comm, prefix=prefix)
 
@@ -281,3 +243,37 @@ def test_explicit_plastic_on_two_ranks_is_serial():
     (fa, wa), (fb, wb) = runs
     assert np.abs(fa - fb).max() <= 1e-10 * np.abs(fb).max()
     assert wa == pytest.approx(wb, rel=1e-10)
+
+
+@pytest.mark.parametrize("gdim", [2, 3])
+@pytest.mark.parametrize("hardening", [2e6, -1e6, 0.0])
+def test_fused_kernel_is_the_ufl_return_and_residual(gdim, hardening):
+    """The fused kernel (kinematics, the numba return and the element forces in one pass
+    over the cells) gives the residual dolfinx assembles from the UFL return, with a
+    partition weight and a load, and the UFL return's state, to round-off, at points
+    elastic and on the cone (hardening; softening to the floor; perfectly plastic)."""
+    from granfe.explicit import _FormForces, _SimplexForces
+
+    material = replace(PLASTIC, hardening=hardening, residual_cohesion=200.0 if hardening < 0 else 0.0,
+                       match="plane_strain" if gdim == 2 else "triaxial_compression",
+                       initial_stress=(-60e3, -100e3, -60e3) if gdim == 2 else S0)
+    results = []
+    for kind in (_FormForces, _SimplexForces):
+        p = _points_and_ufl(gdim, material)
+        DG0 = fem.functionspace(p.domain, ("DG", 0))
+        weight = fem.Function(DG0)
+        weight.interpolate(lambda x: 0.2 + x[0])
+        p.set_weight(weight)
+        p.body_force(np.full(gdim, -1e4))
+        forces = kind(p)
+        forces.start()
+        b = fem.Function(p.V)
+        forces.residual(b.x.petsc_vec, commit=True)
+        forces.finish()
+        results.append((b.x.array.copy(), {k: f.x.array.copy() for k, f in p.state.committed.items()}))
+    (r0, s0), (r1, s1) = results
+    yielding, eq = s0["yielding"], s0["equivalent_plastic_strain"]
+    assert 0.1 < yielding.mean() < 0.95 and eq.max() > 0, yielding.mean()
+    assert np.abs(r1 - r0).max() <= 1e-10 * np.abs(r0).max()
+    for k in s0:
+        assert np.abs(s1[k] - s0[k]).max() <= 1e-9 * max(np.abs(s0[k]).max(), 1e-12), k
