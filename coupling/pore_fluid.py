@@ -27,15 +27,29 @@ velocity ``v_s,a = sum_i V_i v_i N_a(x_i) / sum_i V_i N_a(x_i)``. The permeabili
 Kozeny-Carman ``k = d^2 n^3 / (C (1 - n)^2)`` or a constant. The averaging volume is the
 cell (DG0) or the node's support (P1): it must hold tens of grains, or the scatter of n
 makes k (~n^3) and the forces noisy (measured: Kozeny-Carman flux within 1 % with ~40
-grains per cell, 27 % off with ~12 per triangle).
+grains per cell, 27 % off with ~12 per triangle). With P1 a boundary node averages its
+half-support only, the grains against the wall or the surface, so its porosity and its
+Kozeny-Carman k (~n^3) are the boundary layer's: a consolidating lattice column drained at
+the top, 6 cells high, ran ahead of Terzaghi with P1 (T50 0.14 against 0.197; DG0 0.19,
+demos/2d/grain_consolidation.py), where at a constant k the two agree.
 
 Back to the grains, through `dem.Simulation.set_external_force` (FREE rows, held over the
 DEM steps of one fluid step, their change with the grains' motion in the meantime taken
 implicitly: :class:`DarcyFlow`): the fluid's force on the skeleton per bulk volume is
 ``-grad p`` (drag and the excess-pressure buoyancy of Darcy flow) plus the hydrostatic
-buoyancy, so grain ``i`` of volume ``V_i`` gets
+buoyancy. It is handed out by the transpose of the averaging that made the solid fraction:
+each dof's share ``F_a = -int N_a grad p dx`` goes to the grains in proportion to the
+weights ``V_i N_a(x_i)`` they gave its solid fraction,
 
-    f_i = -V_i grad p(x_i) / (1 - n(x_i)) - rho_f V_i g.
+    f_i = V_i sum_a N_a(x_i) F_a / S_a - rho_f V_i g,   S_a = sum_j V_j N_a(x_j),
+
+so the grains get exactly ``-int grad p dx``, cell by cell (DG0) or dof by dof (P1): the
+reaction to the drag the fluid feels (``S_a`` is at least ``(1 - porosity_max) int N_a``,
+the clipping of n). For a uniform porosity it is ``-V_i grad p / (1 - n)``. The point value
+``-V_i grad p(x_i) / (1 - n(x_i))`` instead is not conservative where n varies within a
+dof's support: with P1 on a rough drained surface the top row of grains got ~78 % of the
+seepage force it carries, and a column of grains consolidated ahead of Terzaghi's curve
+(a hexagonal lattice, elastic: T50 0.135 against 0.197; 0.19 conservative).
 
 2D: disks of unit thickness (volume = area, forces per metre). Parallel: the grains are held
 whole on every rank (a replicated `dem.Simulation`); each rank evaluates the grains whose
@@ -58,7 +72,7 @@ import numpy as np
 import ufl
 from dolfinx import default_scalar_type, fem
 from dolfinx import mesh as _mesh
-from dolfinx.fem.petsc import LinearProblem, assemble_vector
+from dolfinx.fem.petsc import LinearProblem, assemble_matrix, assemble_vector
 
 from coupling.locate import owner_ranks, relocate
 from coupling.operators import FieldBasis
@@ -85,7 +99,9 @@ class PoreFluidParameters:
             ``2 dim sum V / sum S`` (= 2 r for equal grains).
         porosity_min, porosity_max: the porosity is clipped to this range (empty cells,
             crammed cells), 0 < min < max < 1.
-        porosity_space: ``"DG0"`` (cell binning) or ``"P1"`` (nodal) for n and v_s.
+        porosity_space: ``"DG0"`` (cell binning) or ``"P1"`` (nodal, smoother, but its
+            boundary nodes see the boundary layer's porosity: the module docstring) for n
+            and v_s.
         pressure_degree: Lagrange degree of p, 1 or 2.
         implicit_drag: the velocity components (``"all"``, ``"none"`` or axes such as
             ``"y"``, ``"xz"``) whose cell-mean changes between two fluid steps feel the
@@ -207,17 +223,18 @@ class DarcyFlow:
         self._spaces = {"n": _GrainSpace(domain, basix.ufl.element(fam, cell, deg)),
                         "v": _GrainSpace(domain, basix.ufl.element(fam, cell, deg,
                                                                    shape=(gdim,)))}
-        self._spaces["g"] = self._spaces["v"] if (fam, deg) == ("DG", pdeg - 1) else \
-            _GrainSpace(domain, basix.ufl.element("DG", cell, pdeg - 1, shape=(gdim,)))
-        self.Vn, self.Vv, self.Vg = (self._spaces[k].V for k in "nvg")
+        self.Vn, self.Vv = self._spaces["n"].V, self._spaces["v"].V
         self.Vp = fem.functionspace(domain, basix.ufl.element("Lagrange", cell, pdeg))
         self.porosity = fem.Function(self.Vn, name="porosity")
         self.velocity = fem.Function(self.Vv, name="grain_velocity")
         self.p = fem.Function(self.Vp, name="pore_pressure")
         self.p_old = fem.Function(self.Vp)
-        self.grad_p = fem.Function(self.Vg)
-        self._grad_expr = fem.Expression(ufl.grad(self.p),
-                                         self.Vg.element.interpolation_points)
+        #: F_a = -int N_a grad p dx on Vv: the fluid's force on the skeleton, dof by dof
+        self.nodal_force = fem.Function(self.Vv, name="seepage_force")
+        # p -> F: the mesh's, assembled once
+        self._force_matrix = assemble_matrix(fem.form(-ufl.inner(
+            ufl.grad(ufl.TrialFunction(self.Vp)), ufl.TestFunction(self.Vv)) * ufl.dx))
+        self._force_matrix.assemble()
         self.lumped_mass = self._lumped_mass(self.Vn)  #: int N_a dx of the local dofs of Vn
         self._storage = fem.Constant(domain, default_scalar_type(0.0))  # beta_f / dt
         self.bcs: list = []
@@ -435,22 +452,35 @@ class DarcyFlow:
 
     # ---- mesh -> grains -------------------------------------------------------------------
     def grain_forces(self) -> np.ndarray:
-        """The fluid's force on every grain (n, 3) [N] from the last solve: Darcy
-        ``-V grad p / (1 - n)`` plus buoyancy ``-rho_f V g`` (the same on every rank)."""
+        """The fluid's force on every grain (n, 3) [N] from the last solve: its share of
+        ``-int grad p dx`` (the module docstring) plus buoyancy ``-rho_f V g`` (the same on
+        every rank)."""
         return self._at_grains()[0]
+
+    def _seepage_per_volume(self) -> fem.Function:
+        """F_a / S_a on Vv (the force per grain volume of the grains' share of dof a, from
+        the last solve and the solid sums of the last :meth:`update_from_grains`)."""
+        gdim = self.domain.geometry.dim
+        F = self.nodal_force
+        self._force_matrix.mult(self.p.x.petsc_vec, F.x.petsc_vec)
+        F.x.scatter_forward()
+        floor = (1.0 - self.params.porosity_max) * self.lumped_mass
+        share = np.maximum(self._work("solid", self.Vn).x.array, floor)
+        g = self._work("seepage", self.Vv)
+        g.x.array[:] = (F.x.array.reshape(-1, gdim) / share[:, None]).ravel()
+        return g
 
     def _at_grains(self):
         """(forces (n, 3) [N], drag coefficients alpha (n,) [N s/m], global cell (n,)) of
         every grain, the same on every rank."""
         gdim = self.domain.geometry.dim
-        self.grad_p.interpolate(self._grad_expr)
         mine = self._mine
-        grad = self._spaces["g"].at_grains(self.grad_p)
+        per_volume = self._spaces["v"].at_grains(self._seepage_per_volume())
         n = self._spaces["n"].at_grains(self.porosity)[:, 0]
         cells = self._spaces["n"].basis.cells
         tdim = self.domain.topology.dim
         out = np.zeros((self.sim.p.n, 5))
-        out[mine, :gdim] = -self.volume[mine, None] * grad / (1.0 - n[:, None])
+        out[mine, :gdim] = self.volume[mine, None] * per_volume
         out[mine, 3] = self._drag_coefficient(self.volume[mine], n, self._cell_size[cells])
         out[mine, 4] = self.domain.topology.index_map(tdim).local_to_global(cells) + 1
         out = self.domain.comm.allreduce(out)   # each grain on one rank: an exact sum

@@ -2,11 +2,11 @@
 
 This demo shows how to:
 
-- settle a column of disks in a box, then preload it by a surcharge shared by its
-  surface grains (no gravity from then on: a uniform preload, as in an oedometer), loaded
-  to the final load once and unloaded, so that the load step is a reload (a first loading
-  also collapses the packing, first where the effective stress rises first, and its
-  surface then runs ahead of Terzaghi's: T50 0.11-0.15 against 0.197),
+- build a column of disks in a box (by default a hexagonal lattice of equal disks as wide
+  as the box, whose skeleton is elastic, as Terzaghi's theory takes it; ``--packing
+  random``: a random packing settled under gravity), then preload it by a surcharge shared
+  by its surface grains (no gravity from then on: a uniform preload, as in an oedometer),
+  loaded to the final load once and unloaded, so that the load step is a reload,
 - measure the column's drained oedometric modulus (a dry load step: damped, then a slow
   undamped ramp as the saturated skeleton is loaded) and its permeability (a steady Darcy
   flow through it, :class:`coupling.pore_fluid.DarcyFlow`, before and after the dry step:
@@ -18,8 +18,24 @@ This demo shows how to:
   the measured c_v = k E_oed / mu_f; the layers' settlement shows where they differ,
 - write ``results.json`` and ``grain_consolidation.png`` to ``--out``.
 
+Why a lattice. A random 2D packing's reload is not elastic: its settlement depends on the
+path (the saturated column is loaded from the drained face down, by seepage forces; the dry
+one at once), so no measured modulus describes it. Measured, seeds 1-5 of the random
+packing: the saturated column ends 0.95-1.22 times the dry settlement, max |U - U_T| 3-30 %
+over T = 0.1-1.5, with either normal dashpot (the half-step one gave 2.7 % at seed 3 and 14
+and 30 % at seeds 4 and 5), with one fluid step per DEM step as with eight, with grain
+friction 1 or 100 and frictionless walls. The lattice reloads elastically (the ramped and
+the damped dry steps settle alike, the saturated column ends at the dry settlement) and
+tests the coupling itself: there the porosity averaged on P1 (nodal) runs ahead of
+Terzaghi (T50 0.14 against 0.197: the nodes at the drained face and the base average one
+side only, the boundary layer of grains, whose porosity and Kozeny-Carman permeability are
+the column's highest), and the cell binning (DG0, the default) follows it. What is left
+(the settlement a few % behind Terzaghi's from T ~ 0.3) is the grain column's own: the same
+lattice under the closed-form 1D drag of the fluid alone (no pressure solve) settles the
+same to 0.005 of U (tests/coupling/test_pore_fluid.py).
+
 Run: ``python demos/2d/grain_consolidation.py`` (serial only: the DEM and the mesh are on
-one rank; ~1 min); ``GRANFE_SHORT=1`` for a short run (to T = 0.5).
+one rank; ~1.5 min); ``GRANFE_SHORT=1`` for a short run (to T = 0.5).
 """
 
 from __future__ import annotations
@@ -39,7 +55,7 @@ from dolfinx import mesh
 
 from coupling.pore_fluid import DarcyFlow, PoreFluidParameters, grain_volumes
 from dem import ContactMaterial, Particles, Simulation, box_walls, relax
-from dem.packing import random_packing
+from dem.packing import lattice_packing, random_packing
 from granfe.consolidation import terzaghi_pressure
 from granfe.probe import probe
 
@@ -47,6 +63,9 @@ SHORT = os.environ.get("GRANFE_SHORT") == "1"
 
 # ---- parameters (SI) ------------------------------------------------------------------
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+parser.add_argument("--packing", choices=("lattice", "random"), default="lattice",
+                    help="a hexagonal lattice of disks of radius r_max (the width rounded "
+                         "to whole disks), or a random packing settled under gravity")
 parser.add_argument("--width", type=float, default=0.04, help="column width W [m]")
 parser.add_argument("--fill", type=float, default=0.04, help="height of the box filled [m]")
 parser.add_argument("--r-min", type=float, default=0.9e-3, help="smallest radius [m]")
@@ -65,7 +84,8 @@ parser.add_argument("--T-end", type=float, default=None, help="end time c_v t / 
 parser.add_argument("--rows", type=int, default=6, help="mesh rows (one column of quads)")
 parser.add_argument("--layers", type=int, default=4,
                     help="layers of the settlement profile (diagnostics)")
-parser.add_argument("--porosity-space", default="P1", help="DG0 or P1 (see coupling.pore_fluid)")
+parser.add_argument("--porosity-space", default="DG0",
+                    help="DG0 or P1 (see coupling.pore_fluid; P1 runs ahead, the docstring)")
 parser.add_argument("--headroom", type=float, default=0.0,
                     help="the mesh's (drained) top above the column's, in r_max (2: a "
                          "half-empty top cell, whose porosity inflates the surface grains' "
@@ -88,7 +108,9 @@ FLUID = PoreFluidParameters(viscosity=args.mu_f, compressibility=args.beta_f,
                             porosity_space=args.porosity_space)
 WALLS = dataclasses.replace(MAT, friction=MAT.friction if args.wall_friction is None
                             else args.wall_friction)   # the pair takes the smaller
-W = args.width
+# a lattice as wide as the box: its full rows touch both walls and cannot spread
+W = args.width if args.packing == "random" else \
+    2 * args.r_max * max(2, round(args.width / (2 * args.r_max)))
 
 
 def log(msg):
@@ -145,13 +167,17 @@ def hold(sim, q, max_steps=100_000):
 
 # ---- 1. settle under gravity, then preload the surface --------------------------------
 t_start = time.perf_counter()
-x, r = random_packing([0, 0], [W, args.fill], args.r_min, args.r_max, 0.45, seed=args.seed,
-                      strict=False)
+if args.packing == "lattice":
+    x, r = lattice_packing([0, 0], [W, args.fill], args.r_max, kind="hex")
+else:
+    x, r = random_packing([0, 0], [W, args.fill], args.r_min, args.r_max, 0.45,
+                          seed=args.seed, strict=False)
 p = Particles.spheres(x, r, MAT.density, dim=2)
 sim = Simulation(p, [MAT, WALLS], walls=box_walls([0, 0, 0], [W, 1, 0], dim=2, material=1),
                  gravity=(0, -9.81),
                  safety=0.1)
-relax(sim, tol=1e-3, check_every=200)
+if args.packing == "random":
+    relax(sim, tol=1e-3, check_every=200)
 packed = (p.x.copy(), p.radius.copy())
 top = top_grains(*packed)
 sim = column()
@@ -306,12 +332,13 @@ log(f"{len(t)} fluid steps ({len(t) * args.every} DEM steps) in {wall_s:.1f} s; 
     f"T50 = {T50:.4f} (Terzaghi 0.1967)")
 
 results = {
-    "inputs": {"width": W, "fill": args.fill, "r_min": args.r_min, "r_max": args.r_max,
+    "inputs": {"packing": args.packing, "width": W, "fill": args.fill, "r_min": args.r_min, "r_max": args.r_max,
                "kn": args.kn, "friction": MAT.friction, "wall_friction": WALLS.friction,
                "restitution": MAT.restitution,
                "density": MAT.density, "preload": args.preload, "load": args.load,
                "mu_f": args.mu_f, "beta_f": FLUID.compressibility, "rho_f": FLUID.density,
-               "every": args.every, "T_end": T_END, "overconsolidate": args.overconsolidate,
+               "every": args.every, "porosity_space": FLUID.porosity_space,
+               "T_end": T_END, "overconsolidate": args.overconsolidate,
                "headroom": args.headroom, "modulus": args.modulus, "seed": args.seed,
                "mesh": [1, args.rows],
                "loaded_grains": int(len(top)),
@@ -354,12 +381,12 @@ ax2.grid(alpha=0.3)
 fig.tight_layout()
 fig.savefig(args.out / "grain_consolidation.png", dpi=120)
 
-# ---- checks (a few hundred grains, one packing). Measured, full run: max |U - U_T| 0.027
-# against the dry step, 0.028 against the final settlement, base pressure 0.10 dq, final U
-# 0.98 with the contact dashpot of commit 227e7ba; 0.114, 0.054, 0.17 and 1.08 with the
-# end-of-step dashpot (dem.contact.damping): the skeleton's reload is dashpot-sensitive ---
-assert errors["settlement_U_max_abs"] < 0.15, errors
+# ---- checks. Measured, full run, the lattice (350 grains): max |U - U_T| 0.041 against the
+# dry step, 0.024 against the final settlement, base pressure 0.06 dq, final U 0.96; the
+# random packing only within its path dependence (the docstring) ---
+tol = 0.05 if args.packing == "lattice" else 0.35
 assert errors["base_pressure_max_abs_over_dq"] < 0.2, errors
+assert errors["settlement_U_max_abs"] < tol, errors
 if not SHORT:     # the settlement's normalisation needs the end of consolidation
-    assert errors["settlement_U_final_max_abs"] < 0.08, errors
-    assert 0.9 < errors["final_U"] < 1.15, errors
+    assert errors["settlement_U_final_max_abs"] < tol, errors
+    assert abs(errors["final_U"] - errors["final_U_exact"]) < tol, errors

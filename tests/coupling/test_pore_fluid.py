@@ -1,14 +1,16 @@
 """Darcy pore fluid through the grains (seed 003, Goren et al. 2011): porosity and mean
 velocity from the grains, Kozeny-Carman flux, the critical hydraulic gradient of upward
-seepage, bad input.
+seepage, consolidation of a grain column, bad input.
 
 Tolerances: exactness (1e-10) where the answer lies in the discrete spaces (lattice
-porosity, constant permeability, conservation of the grains' volume and of the flux, serial
-== 2 ranks); physics: 2 % for Kozeny-Carman through a random packing (the cell-to-cell
+porosity, constant permeability, conservation of the grains' volume, of the flux and of the
+seepage force, serial == 2 ranks); 0.01 of U between the coupled column and its closed-form
+1D drag (the groups fixed at the start, the FE's relocated: measured 0.005); physics: 2 % for Kozeny-Carman through a random packing (the cell-to-cell
 scatter of the porosity, ~40 grains per cell, makes the flux differ from that of the mean
 porosity: measured 0.02-1.1 %), 5 % for the lift-off gradient (ramped in 1 % steps; measured
 1.02 i_c, seed-dependent), 10 % of the settlement for 1, 4 and 16 DEM steps per fluid step
-(the fluid's response lags by up to a fluid step; measured 1-7 %).
+(the fluid's response lags by up to a fluid step; measured 1-7 %), 8 % of U for Terzaghi on
+the lattice column (the grain column's own departure from a uniform elastic one: 5.7 %).
 """
 
 import math
@@ -18,11 +20,13 @@ from mpi4py import MPI
 
 import numpy as np
 import pytest
-from dolfinx import mesh
+import ufl
+from dolfinx import fem, mesh
 
 from coupling.locate import PointsOutsideMesh
 from coupling.pore_fluid import DarcyFlow, PoreFluidParameters, grain_volumes, kozeny_carman
 from dem import ContactMaterial, Particles, Simulation, box_walls, relax
+from dem.drag import GroupDrag
 from dem.packing import lattice_packing, random_packing, solid_fraction
 
 MAT = ContactMaterial(E=1e7, nu=0.25, density=2650.0, friction=0.3, restitution=0.3,
@@ -249,6 +253,113 @@ def test_subcycled_fluid_steps_are_stable_and_agree(settled_bed):
         assert not isinstance(s, str), s
         np.testing.assert_allclose(s, ref, atol=0.1 * ref[-1])
     assert isinstance(consolidate(settled_bed, 16, "none", blocks=4), str)
+
+
+# ---- (b3) Terzaghi on an elastic column of grains ------------------------------------------
+def _degree_of_consolidation(T):
+    m = 2 * np.arange(200) + 1
+    return 1 - np.sum(8 / (m * np.pi) ** 2 * np.exp(-np.outer(T, (m * np.pi) ** 2) / 4), axis=1)
+
+
+@pytest.mark.parametrize("space", ["DG0", "P1"])
+def test_seepage_forces_are_the_pressure_drop(space):
+    """The grains get exactly -int grad p dx (the transpose of the averaging that made the
+    porosity), also where the porosity varies within a dof's support (a random bed under a
+    rough surface, the mesh's top half-empty): momentum passes whole from fluid to grains
+    (but for dofs whose porosity is clipped at porosity_max, kept out of reach here)."""
+    W, H, dp = 0.02, 0.016, 40.0
+    x, r = random_packing([0, 0], [W, H], 0.8e-3, 1.2e-3, 0.45, seed=2)
+    sim = grains(x, r, 2)
+    msh = box_mesh(MPI.COMM_SELF, (W, H + 2e-3), (2, 4))
+    fl = DarcyFlow(msh, sim, PoreFluidParameters(compressibility=0.0, density=0.0,
+                                                 porosity_space=space, porosity_max=0.999))
+    fl.pressure(face(1, 0.0), dp)
+    fl.drained(face(1, H + 2e-3))
+    fl.step(None)
+    for c in (0, 1):
+        total = fem.assemble_scalar(fem.form(-fl.p.dx(c) * ufl.dx))
+        assert fl.forces[:, c].sum() == pytest.approx(total, rel=1e-10, abs=1e-12 * dp * W)
+    assert fl.forces[:, 1].sum() == pytest.approx(dp * W, rel=1e-10)  # the side walls: dp x
+
+
+def test_lattice_column_consolidates_as_its_1d_drag_and_terzaghi():
+    """A hexagonal lattice of ~330 equal disks as wide as the box (its full rows touch both
+    walls: an elastic skeleton; demos/2d/grain_consolidation.py at a constant permeability k),
+    preloaded by a surcharge on its top rows, then loaded by a step dq, drained top, 6 DG0
+    cells. In 1D with an impermeable base the fluid is exactly a drag mu / k per bulk volume
+    on each cell's mean grain velocity (n (v_f - v_s) = -v_s, so k / mu dp/dz = v_s): the
+    coupled run must settle as the same column under that drag alone (dem.drag.GroupDrag,
+    no fluid; measured within 0.005 of U), and both within 8 % of the drained (dry)
+    settlement times Terzaghi's U(T) over T = 0.1-0.5 (measured 5.7 %, behind: the same
+    without any fluid model, so it is the grain column's, not the coupling's)."""
+    r0, W, q0, dq, k, mu, rows = 1.1e-3, 0.0396, 200.0, 200.0, 1.3e-10, 1e-3, 6
+    lat = ContactMaterial(E=1e7, nu=0.25, density=RHO_S, friction=0.3, restitution=0.3,
+                          law="linear", kn=2e4, kt=1e4)
+    x, r = lattice_packing([0, 0], [W, 0.04], r0, kind="hex")
+    top = np.flatnonzero(x[:, 1] > x[:, 1].max() - 2 * r0)
+
+    def column(state=None):
+        sim = Simulation(Particles.spheres(x, r, RHO_S, dim=2), lat, safety=0.1,
+                         walls=box_walls([0, 0, 0], [W, 1, 0], dim=2))
+        if state is not None:
+            sim.load_state(state)
+        return sim
+
+    def load(q):
+        f = np.zeros((len(r), 3))
+        f[top, 1] = -q * W / len(top)
+        return f
+
+    def hold(sim, q):
+        sim.set_external_force(np.arange(sim.p.n), load(q))
+        last = np.inf
+        for _ in range(200):
+            sim.step(200, decay=math.exp(-0.02))
+            y = sim.p.x[top, 1].mean()
+            if abs(y - last) < 1e-10:
+                return y
+            last = y
+        raise AssertionError("the column did not come to rest")
+
+    sim = column()
+    y0 = hold(sim, q0)
+    preloaded = sim.state_dict()
+    s_dry = y0 - hold(sim, q0 + dq)
+    H = float((x[:, 1] + r).max())
+    t_c = H**2 / (k / mu * dq * H / s_dry)          # c_v = k E_oed / mu, E_oed = dq H / s_dry
+    assert 2000 < t_c / sim.dt < 5000               # quasi-static yet a short run
+
+    def consolidate(advance):
+        sim = column(preloaded)
+        t0, T, U = sim.time, [], []
+        step = advance(sim)
+        while sim.time - t0 < 0.5 * t_c:
+            step(80)
+            T.append((sim.time - t0) / t_c)
+            U.append((y0 - sim.p.x[top, 1].mean()) / s_dry)
+        return np.array(T), np.array(U)
+
+    def darcy(sim):
+        msh = mesh.create_rectangle(MPI.COMM_SELF, [[0, 0], [W, H]], [1, rows],
+                                    mesh.CellType.quadrilateral)
+        fl = DarcyFlow(msh, sim, PoreFluidParameters(permeability=k, viscosity=mu))
+        fl.drained(face(1, H))
+        fl.extra_force = load(q0 + dq)
+        return lambda m: fl.advance(m, every=8)
+
+    def drag_alone(sim):
+        sim.set_external_force(np.arange(sim.p.n), load(q0 + dq))
+        V = grain_volumes(r, 2)
+        cell = np.minimum((sim.p.x[:, 1] / (H / rows)).astype(int), rows - 1)
+        solid = np.bincount(cell, V, rows) / (W * H / rows)
+        drag = GroupDrag(cell, V, V * mu / (k * solid[cell]), np.zeros((rows, 3)))
+        return lambda m: sim.step(m, hook=drag.hook(sim))
+
+    T, U = consolidate(darcy)
+    T1, U1 = consolidate(drag_alone)
+    np.testing.assert_allclose(U, U1, atol=0.01)
+    late = T > 0.1
+    assert np.abs(U - _degree_of_consolidation(T))[late].max() < 0.08
 
 
 # ---- (d) bad input -----------------------------------------------------------------------
