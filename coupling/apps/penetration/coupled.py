@@ -85,6 +85,7 @@ from dem import GHOST, ContactMaterial, Particles, Simulation
 from dem.bonded import hexagonal_lattice
 from dem.timestep import DEFAULT_SAFETY, rayleigh_dt
 from granfe.dynamics import GeneralizedAlpha
+from granfe.explicit import CentralDifference
 from granfe.materials import MicropolarMaterial
 from granfe.models.micropolar import Micropolar
 from granfe.problem import ContinuumProblem
@@ -516,7 +517,8 @@ class CoupledPenetration:
         if dim == 3 and prm.vertical_stress == 0:
             self._hold_geostatic_state()
         self.dt_fe = prm.substeps * self.sim.dt
-        self.stepper = GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=0.8)
+        self.stepper = (CentralDifference(self.problem, self.dt_fe) if prm.continuum_integrator == "explicit"
+                        else GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=0.8))
         self.g_prev = self._ghost_motion()
         # the iterated exchange's accelerator (unused by the loose one); the last step's pairs
         # are reused: the next step's map is nearly the same

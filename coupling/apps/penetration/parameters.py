@@ -109,6 +109,11 @@ class PenetrationParameters:
     # stiffness once it yields, and the window drifts with its grains (a 4.5 cm window sank
     # 24 mm and q_c fell to zero); hardening keeps a restoring stiffness
     continuum_hardening: float = 0.0
+    # the continuum's time stepping: "implicit" (generalized-alpha, rho_inf 0.8; a plastic
+    # model by quasi-Newton on its elastic Jacobian) or "explicit" (granfe.explicit: central
+    # differences on a lumped mass, the FE step split into substeps below the measured
+    # stability limit; a plastic step is one fused return and force pass per substep, no solve)
+    continuum_integrator: str = "implicit"
 
     def __post_init__(self):
         self._check_values()
@@ -196,6 +201,9 @@ class PenetrationParameters:
                              f"got {self.continuum_dilatancy_deg!r}")
         if not (np.isfinite(self.continuum_cohesion) and self.continuum_cohesion >= 0):
             raise ValueError(f"continuum_cohesion must be >= 0 Pa, got {self.continuum_cohesion!r}")
+        if self.continuum_integrator not in ("implicit", "explicit"):
+            raise ValueError(f"continuum_integrator must be 'implicit' or 'explicit', "
+                             f"got {self.continuum_integrator!r}")
         if not (np.isfinite(self.continuum_hardening) and self.continuum_hardening >= 0):
             raise ValueError(f"continuum_hardening must be >= 0 Pa, got {self.continuum_hardening!r}")
         if not (np.isfinite(self.vertical_stress) and self.vertical_stress >= 0):

@@ -91,7 +91,10 @@ class ContinuumModel:
     scaled to the window's constrained modulus, probed in situ) or ``window_isotropic`` (lam
     and the shear modulus both from that probe: its lateral stress too). ``hardening``
     [Pa]: the cone's cohesion grows by it per unit equivalent plastic strain (perfect
-    plasticity lets a displacement-driven window drift with its grains)."""
+    plasticity lets a displacement-driven window drift with its grains). ``integrator``:
+    ``implicit`` (generalized-alpha) or ``explicit`` (central differences on a lumped mass,
+    substepped below the measured stability limit: no solve, which makes a plastic far field
+    cheap, `granfe.explicit`)."""
 
     model: str = parameter(P, "continuum")
     constants: str = parameter(P, "continuum_constants")
@@ -99,6 +102,7 @@ class ContinuumModel:
     dilatancy_deg: float = parameter(P, "continuum_dilatancy_deg")
     cohesion: float = parameter(P, "continuum_cohesion")
     hardening: float = parameter(P, "continuum_hardening")
+    integrator: str = parameter(P, "continuum_integrator")
 
 
 @dataclass(frozen=True)
