@@ -54,6 +54,7 @@ from dolfinx.fem.petsc import assemble_residual, assemble_vector, assign
 from dolfinx.io import VTXWriter
 
 from coupling.checkpoints import CheckpointError, find_checkpoint, write_checkpoint
+from coupling.fe2_placement import Placement, balance
 from dem.integrate import Simulation
 from dem.periodic import PeriodicCell
 from dem.rve import RVE, ConvergenceError, from_mandel, to_mandel
@@ -64,7 +65,8 @@ from granfe.problem import ContinuumProblem
 from granfe.solvers import SolveDidNotConverge
 from granfe.stepping import StepControl, follow_load_path
 
-__all__ = ["FE2", "FE2Writer", "MacroNewton", "clone_rve"]
+__all__ = ["FE2", "FE2Writer", "MacroNewton", "clone_rve", "consolidate_shared",
+           "rve_from_state"]
 
 TANGENTS = ("perturbation", "affine", "initial", "secant")
 
@@ -84,7 +86,10 @@ class MacroNewton:
     quasi-Newton at the material points, no extra relaxation); tangent_delta: perturbation
     strain, in (0, 1e-2); tangent_every: load steps between perturbation tangents (>= 1);
     secant_min: smallest strain change of a secant update (>= 0; below it the difference of
-    two relaxed stresses is mostly their relaxation error).
+    two relaxed stresses is mostly their relaxation error); imbalance: after a load step,
+    RVEs move between ranks (:mod:`coupling.fe2_placement`) while the most and the least
+    loaded rank's RVE work of the step differ by more than this fraction of the mean (>= 0;
+    ``math.inf``: every RVE stays with its cell).
     """
 
     force_tol: float = 1e-3
@@ -93,6 +98,7 @@ class MacroNewton:
     tangent_delta: float = 1e-5
     tangent_every: int = 1
     secant_min: float = 1e-6
+    imbalance: float = 0.05
 
     def __post_init__(self):
         checks = (("force_tol", 0 < self.force_tol < 1, "in (0, 1)"),
@@ -101,7 +107,8 @@ class MacroNewton:
                   ("tangent_delta", 0 < self.tangent_delta < 1e-2, "in (0, 1e-2)"),
                   ("tangent_every", isinstance(self.tangent_every, int) and self.tangent_every >= 1,
                    "an integer >= 1"),
-                  ("secant_min", self.secant_min >= 0, ">= 0"))
+                  ("secant_min", self.secant_min >= 0, ">= 0"),
+                  ("imbalance", self.imbalance >= 0, ">= 0"))
         for name, ok, rule in checks:
             if not ok:
                 raise ValueError(f"MacroNewton.{name} must be {rule}, got {getattr(self, name)!r}")
@@ -110,15 +117,35 @@ class MacroNewton:
 def clone_rve(rve: RVE) -> RVE:
     """An independent RVE in ``rve``'s state (the same grains, contacts and committed state),
     built through the public state API."""
-    state = rve.state_dict()
+    return rve_from_state(rve.state_dict(), rve.sim.materials, rve.solver)
+
+
+def rve_from_state(state: dict, materials, solver) -> RVE:
+    """An RVE built from an `RVE.state_dict` (committed there; continues it bit for bit),
+    with the Simulation's ``materials`` and the `QuasiStatic` ``solver``."""
     grains = {k[len("particles."):]: v for k, v in state.items() if k.startswith("particles.")}
-    dim = rve.dim
-    sim = Simulation(Particles.from_state_dict(grains), rve.sim.materials,
+    dim = int(state["particles.dim"])
+    sim = Simulation(Particles.from_state_dict(grains), materials,
                      cell=PeriodicCell(np.asarray(state["cell.h"])[:dim, :dim]),
                      allow_overlap=True)
-    out = RVE(sim, rve.solver)
+    out = RVE(sim, solver)
     out.load_state(state)
     out.commit()
+    return out
+
+
+def consolidate_shared(comm: MPI.Comm, makers: Sequence[Callable[[], RVE]]) -> list[RVE]:
+    """``[make() for make in makers]`` on every rank, each made once: rank r runs the makers
+    r, r + size, ... and broadcasts their states, from which every other rank builds the same
+    RVE (`rve_from_state`: the same bits as if it had made it). Collective. (Every rank making
+    every prototype is work the second rank cannot share: seconds a packing.)"""
+    mine = {i: make() for i, make in enumerate(makers) if i % comm.size == comm.rank}
+    out = []
+    for i in range(len(makers)):
+        rve = mine.get(i)
+        sent = comm.bcast(None if rve is None else
+                          (rve.state_dict(), rve.sim.materials, rve.solver), root=i % comm.size)
+        out.append(rve if rve is not None else rve_from_state(*sent))
     return out
 
 
@@ -161,23 +188,28 @@ class FE2:
         local_q = np.empty(self.n, np.int64)
         local_q[dofs.ravel()] = np.tile(np.arange(self.per_cell), len(cells))
         self.global_point = original.astype(np.int64) * self.per_cell + local_q
-        pick = pick or (lambda g: g % len(prototypes))
-        self.rves = [clone_rve(prototypes[pick(int(g))]) for g in self.global_point]
+        self._prototypes = list(prototypes)
+        self._pick = pick or (lambda g: g % len(prototypes))
+        self.placement = Placement(self.comm, self.global_point)
+        self.held = {int(g): clone_rve(self._prototype(g)) for g in self.global_point}
+        self._moved: set[int] = set()  # held points whose RVE left its committed state
+        self._cost: dict[int, float] = {}  # held points' particle-steps in this load step
         self._strain_q = fem.Function(Q)
         self._strain_expr = fem.Expression(problem.model.strain(problem.split(problem.w)[0]),
                                            Q.element.interpolation_points,
                                            jit_options=problem.jit_options)
-        self._S = np.array([to_mandel(r.stress(), r.dim) for r in self.rves]).reshape(self.n, self.k)
+        self._S = np.array([to_mandel(self.held[int(g)].stress(), problem.gdim)
+                            for g in self.global_point]).reshape(self.n, self.k)
         self._E = np.zeros((self.n, self.k))
         self._S_c, self._E_c = self._S.copy(), self._E.copy()
-        self._moved = np.zeros(self.n, bool)
         self._C = np.zeros((self.n, self.k, self.k))
         self._C_start = self._C.copy()
         self._S_prev, self._E_prev = self._S_c.copy(), self._E_c.copy()
         self._fill_points()
         self.steps_done, self.history, self.log_rows = 0, [], []
         self.stats = dict(rve_evaluations=0, rve_steps=0, rve_seconds=0.0, tangent_seconds=0.0,
-                          failures=0)
+                          wait_seconds=0.0, step_seconds=0.0, failures=0, moves=0,
+                          rve_steps_max=0)
         self._nlp, self._failed, self._f_ref = None, False, 1.0
 
     # ------------------------------------------------------------------ points
@@ -187,32 +219,74 @@ class FE2:
         fill(st, "strain", self._E)
         fill(st, "tangent", self._C)
 
+    @property
+    def rves(self) -> list[RVE]:
+        """The RVEs this rank holds (ascending global point; not necessarily its own points'
+        after a rebalance)."""
+        return [self.held[g] for g in sorted(self.held)]
+
+    def _prototype(self, g: int) -> RVE:
+        return self._prototypes[self._pick(int(g))]
+
+    def _fresh(self, g: int) -> RVE:
+        """Held point g's RVE at its committed state."""
+        rve = self.held[g]
+        if g in self._moved:
+            rve.restore()
+            self._moved.discard(g)
+        return rve
+
+    def _exchange(self, tasks: dict, work: Callable[[int, RVE, object], object]) -> dict:
+        """``work(g, rve, task)`` for the tasks ``{point: task}`` given at the homes, run by the
+        points' workers in ascending point order (deterministic), the answers back at the
+        homes; the time waiting for them (the other ranks' work) is booked as wait_seconds.
+        Collective."""
+        todo = self.placement.to_workers(tasks)
+        done = {}
+        for g in sorted(todo):
+            done[g] = work(g, self._fresh(g), todo[g])
+            if done[g] is None:
+                break  # an RVE failed: the iteration is lost, the rest need not run
+        t0 = time.perf_counter()
+        self.comm.barrier()
+        self.stats["wait_seconds"] += time.perf_counter() - t0
+        return self.placement.to_homes(done)
+
+    def _relax(self, g: int, rve: RVE, de):
+        """Worker side of an evaluation: (Mandel stress or None if de = 0, DEM steps), or None
+        if the RVE did not relax."""
+        if not de.any():
+            return (None, 0)
+        t0 = time.perf_counter()
+        self._moved.add(g)
+        try:
+            info = rve.load(strain_increment=from_mandel(de, rve.dim))
+        except ConvergenceError:
+            return None
+        finally:
+            self.stats["rve_seconds"] += time.perf_counter() - t0
+        self._cost[g] = self._cost.get(g, 0.0) + info["steps"] * rve.sim.p.n
+        self.stats["rve_evaluations"] += 1
+        self.stats["rve_steps"] += info["steps"]
+        self.stats["rve_steps_max"] = max(self.stats["rve_steps_max"], info["steps"])
+        return (to_mandel(info["stress"], rve.dim), info["steps"])
+
     def _evaluate(self) -> bool:
-        """Every owned RVE at the strain of the current fields (from its committed state);
-        False if one did not relax. Not collective (the fill after it is)."""
+        """Every point's RVE at the strain of the current fields (from its committed state,
+        on its worker); False if one (on any rank) did not relax. Collective."""
         self._strain_q.interpolate(self._strain_expr)
         self._E = self._strain_q.x.array[: self.n * self.k].reshape(self.n, self.k).copy()
-        ok, t0 = True, time.perf_counter()
-        for i, rve in enumerate(self.rves):
-            de = self._E[i] - self._E_c[i]
-            if self._moved[i]:
-                rve.restore()
-                self._moved[i] = False
-            if not de.any():
-                self._S[i] = self._S_c[i]
-                continue
-            try:
-                self._moved[i] = True
-                info = rve.load(strain_increment=from_mandel(de, rve.dim))
-            except ConvergenceError:
+        tasks = {int(g): self._E[i] - self._E_c[i] for i, g in enumerate(self.global_point)}
+        answers = self._exchange(tasks, self._relax)
+        ok = True
+        for i, g in enumerate(self.global_point):
+            got = answers.get(int(g))
+            if got is None:
                 ok = False
-                break
-            self._S[i] = to_mandel(info["stress"], rve.dim)
-            if self.settings.tangent == "secant":
+                continue
+            self._S[i] = self._S_c[i] if got[0] is None else got[0]
+            if got[0] is not None and self.settings.tangent == "secant":
                 self._secant(i)
-            self.stats["rve_evaluations"] += 1
-            self.stats["rve_steps"] += info["steps"]
-        self.stats["rve_seconds"] += time.perf_counter() - t0
         return ok
 
     def _secant(self, i: int) -> None:
@@ -225,19 +299,30 @@ class FE2:
             self._S_prev[i], self._E_prev[i] = self._S[i], self._E[i]
 
     def _tangents(self) -> None:
-        """Fill C at the committed state of every point (module docstring)."""
+        """Fill C at the committed state of every point (module docstring). Collective;
+        raises ConvergenceError on every rank if an RVE's probes did not relax."""
         s, t0 = self.settings, time.perf_counter()
         self._S_prev, self._E_prev = self._S_c.copy(), self._E_c.copy()
         if s.tangent == "initial" and self.steps_done > 0:
             return
         if self.steps_done % s.tangent_every and s.tangent != "initial":
             return
-        for i, rve in enumerate(self.rves):
-            if self._moved[i]:
-                rve.restore()
-                self._moved[i] = False
-            self._C[i] = (rve.affine_stiffness() if s.tangent == "affine"
-                          else rve.tangent(delta=s.tangent_delta))
+
+        def probe(g, rve, _):
+            if s.tangent == "affine":
+                return rve.affine_stiffness()
+            try:
+                c = rve.tangent(delta=s.tangent_delta)
+            except ConvergenceError:
+                return None
+            self._cost[g] = self._cost.get(g, 0.0) + rve.probe_steps * rve.sim.p.n
+            return c
+
+        answers = self._exchange({int(g): None for g in self.global_point}, probe)
+        failed = any(answers.get(int(g)) is None for g in self.global_point)
+        if self.comm.allreduce(int(failed), MPI.MAX):
+            raise ConvergenceError("an RVE's tangent probes did not relax", {})
+        self._C = np.array([answers[int(g)] for g in self.global_point]).reshape(self._C.shape)
         fill(self.problem.state, "tangent", self._C)
         self.stats["tangent_seconds"] += time.perf_counter() - t0
 
@@ -295,6 +380,7 @@ class FE2:
         if self._nlp is None:
             self._build()
         t0 = time.perf_counter()
+        self._cost = {}  # the work of this attempt only (a failed one's is not the next's)
         try:
             self._tangents()
         except ConvergenceError as err:
@@ -310,14 +396,15 @@ class FE2:
         except (SolveDidNotConverge, FloatingPointError):
             self._restore()
             raise
-        for i, rve in enumerate(self.rves):
-            if self._moved[i]:
-                rve.commit()
-            self._moved[i] = False
+        for g in self._moved:
+            self.held[g].commit()
+        self._moved.clear()
         self._S_c, self._E_c = self._S.copy(), self._E.copy()
         self.steps_done += 1
+        moved = self._rebalance()
         row = dict(step=self.steps_done, iterations=its, residuals=self.history[-1],
-                   seconds=time.perf_counter() - t0)
+                   seconds=time.perf_counter() - t0, rves_moved=moved)
+        self.stats["step_seconds"] += row["seconds"]
         self.log_rows.append(row)
         if self._log:
             self._log(f"FE2 step {self.steps_done}: {its} iterations, |R|/|f| "
@@ -327,13 +414,46 @@ class FE2:
 
     def _restore(self) -> None:
         self.stats["failures"] += 1
-        for i, rve in enumerate(self.rves):
-            if self._moved[i]:
-                rve.restore()
-            self._moved[i] = False
+        for g in self._moved:
+            self.held[g].restore()
+        self._moved.clear()
         self._S, self._E = self._S_c.copy(), self._E_c.copy()
         self._C = self._C_start.copy()
         self._fill_points()
+
+    def _rebalance(self) -> int:
+        """Even the ranks' RVE work of the step just committed (`coupling.fe2_placement`).
+        Returns how many RVEs moved. Collective."""
+        cost = np.zeros(len(self.placement.worker))
+        for part in self.comm.allgather(self._cost):
+            for g, c in part.items():
+                cost[g] += c
+        self._cost = {}
+        if self.comm.size == 1 or not np.isfinite(self.settings.imbalance):
+            return 0
+        return self.place(balance(cost, self.placement.worker, self.comm.size,
+                                  self.settings.imbalance))
+
+    def place(self, worker: np.ndarray) -> int:
+        """Hold point g's RVE on rank ``worker[g]`` from now on (an array over the global
+        points, the same on every rank): the RVEs that move travel as their committed
+        state. Between load steps only. Returns how many moved. Collective."""
+        worker = np.asarray(worker, np.int64)
+        if worker.shape != self.placement.worker.shape or not (
+                (0 <= worker) & (worker < self.comm.size)).all():
+            raise ValueError(f"FE2.place: give a rank in [0, {self.comm.size}) for each of the "
+                             f"{len(self.placement.worker)} points")
+        leaving = np.flatnonzero(worker != self.placement.worker)
+        if len(leaving) == 0:
+            return 0
+        mine = [int(g) for g in leaving if int(g) in self.held]
+        states = {g: (self._fresh(g).state_dict(), self.held[g].solver) for g in mine}
+        for g in mine:
+            del self.held[g]
+        for g, (state, solver) in self.placement.move(worker, states).items():
+            self.held[g] = rve_from_state(state, self._prototype(g).sim.materials, solver)
+        self.stats["moves"] += len(mine)
+        return len(leaving)
 
     def follow(self, apply: Callable[[float], None], t_end: float, control: StepControl,
                on_step: Callable[[float, int], None] | None = None):
@@ -350,8 +470,11 @@ class FE2:
         return self._E_c.copy()
 
     def per_point(self, measure: Callable[[RVE], float]) -> np.ndarray:
-        """``measure(rve)`` of every owned point (e.g. ``RVE.coordination``)."""
-        return np.array([measure(r) for r in self.rves])
+        """``measure(rve)`` of every owned point (e.g. ``RVE.coordination``), at the
+        committed state, measured where the RVE is held. Collective."""
+        got = self._exchange({int(g): None for g in self.global_point},
+                             lambda g, rve, _: measure(rve))
+        return np.array([got[int(g)] for g in self.global_point])
 
     def gather(self, values: np.ndarray) -> np.ndarray | None:
         """Owned-point values of every rank in global point order, on rank 0 (None
@@ -370,11 +493,10 @@ class FE2:
         out = {f"problem/{k}": v for k, v in self.problem.state_dict().items()}
         out.update({"points/global": self.global_point, "points/stress": self._S_c,
                     "points/strain": self._E_c, "points/tangent": self._C,
-                    "points/steps_done": np.int64(self.steps_done)})
-        for g, rve in zip(self.global_point, self.rves, strict=True):
-            rve.restore()
-            out.update({f"rve/{g}/{k}": v for k, v in rve.state_dict().items()})
-        self._moved[:] = False
+                    "points/steps_done": np.int64(self.steps_done),
+                    "rves/held": np.array(sorted(self.held), np.int64)})
+        for g in sorted(self.held):
+            out.update({f"rve/{g}/{k}": v for k, v in self._fresh(g).state_dict().items()})
         return out
 
     def load_state(self, d) -> None:
@@ -384,16 +506,31 @@ class FE2:
                              "mesh or rank count?)")
         self.problem.load_state({k[len("problem/"):]: v for k, v in d.items()
                                  if k.startswith("problem/")})
-        for g, rve in zip(self.global_point, self.rves, strict=True):
+        held = [int(g) for g in np.asarray(d.get("rves/held", self.global_point))]
+        worker = np.full(len(self.placement.worker), -1, np.int64)
+        for r, part in enumerate(self.comm.allgather(held)):
+            worker[part] = r
+        if (worker < 0).any():
+            raise ValueError("FE2.load_state: the saved RVEs do not cover every point")
+        self.placement.worker = worker
+        old, self.held = self.held, {}
+        for g in held:
             head = f"rve/{g}/"
-            rve.load_state({k[len(head):]: v for k, v in d.items() if k.startswith(head)})
-            rve.commit()
+            state = {k[len(head):]: v for k, v in d.items() if k.startswith(head)}
+            rve = old.get(g)
+            if rve is None:
+                rve = rve_from_state(state, self._prototype(g).sim.materials,
+                                     self._prototype(g).solver)
+            else:
+                rve.load_state(state)
+                rve.commit()
+            self.held[g] = rve
+        self._moved.clear()
         self._S_c = np.array(d["points/stress"]).reshape(self.n, self.k)
         self._E_c = np.array(d["points/strain"]).reshape(self.n, self.k)
         self._C = np.array(d["points/tangent"]).reshape(self.n, self.k, self.k)
         self._S, self._E = self._S_c.copy(), self._E_c.copy()
         self.steps_done = int(d["points/steps_done"])
-        self._moved[:] = False
         self._fill_points()
 
     def write_checkpoint(self, directory: str | Path) -> Path:

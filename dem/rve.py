@@ -238,6 +238,7 @@ class RVE:
             raise ValueError(f"RVE.solver must be a QuasiStatic, got {type(self.solver)}")
         self.k = len(COMPONENTS[self.dim])
         self.h_ref = sim.cell.h.copy()
+        self.probe_steps = 0
         self._committed = self.state_dict()
 
     @classmethod
@@ -454,18 +455,22 @@ class RVE:
         e_b) - sigma(eps)) / delta after relaxation under pure strain control (or the central
         difference of +-delta), from the state now, which is restored afterwards (bit for
         bit). A granular packing is incrementally nonlinear: this is the tangent of the
-        directions probed, at the strain size delta."""
+        directions probed, at the strain size delta. ``probe_steps`` is then the DEM steps
+        its relaxations took (the state's step count is restored with it)."""
         if not (_positive(delta) and delta < 1e-2):
             raise ValueError(f"RVE.tangent: delta must be in (0, 1e-2), got {delta!r}")
         base = self.state_dict()
         s0 = to_mandel(self.stress(), self.dim)
         t = np.zeros((self.k, self.k))
+        self.probe_steps = 0
         try:
             for b in range(self.k):
                 for sign in (1.0, -1.0) if central else (1.0,):
                     e = np.zeros(self.k)
                     e[b] = sign * delta
-                    s1 = to_mandel(self.strain_step(from_mandel(e, self.dim)), self.dim)
+                    info = self.load(strain_increment=from_mandel(e, self.dim))
+                    self.probe_steps += info["steps"]
+                    s1 = to_mandel(info["stress"], self.dim)
                     ref = s0 if not central else 0.0
                     t[:, b] += sign * (s1 - ref) / (delta * (2.0 if central else 1.0))
                     self.load_state(base)

@@ -163,18 +163,40 @@ def test_failed_step_restores_every_rve_and_a_checkpoint_restores_the_run(protos
 
 
 @pytest.mark.mpi
-def test_serial_equals_two_ranks(protos):
+def test_serial_equals_two_ranks(protos, tmp_path_factory):
     """2 x 2 quads of two triangles: the stresses of every point on
     COMM_WORLD and COMM_SELF agree (distributed RVEs; the macro solve's round-off differs and
-    the relaxations carry it: asserted to 1e-9 p0, measured 5e-13 p0 with either tangent)."""
-    out = []
-    for comm in (MPI.COMM_WORLD, MPI.COMM_SELF):
+    the relaxations carry it: asserted to 1e-9 p0, measured 5e-13 p0 with either tangent).
+    On COMM_WORLD every RVE moves to the next rank after the first step (`FE2.place`: on two
+    ranks every RVE is then evaluated away from its cell) and the answers do not change; a
+    checkpoint written after the move and read into a fresh run gives the same next step to
+    the bit."""
+    world = MPI.COMM_WORLD
+    runs = []
+    for comm in (world, MPI.COMM_SELF):
         fe2, top = biaxial(comm, (2, 2), protos, f"fe2_par{comm.size}_")
         for e in (-5e-4, -1e-3):
             top.value = e * H
             fe2.solve()
-        out.append((fe2.gather(fe2.stress()), comm.allreduce(fe2.n, MPI.SUM)))
-    (world, nw), (alone, ns) = out
-    assert nw == ns == 8
-    if MPI.COMM_WORLD.rank == 0:
-        assert np.abs(world - alone).max() <= 1e-9 * P0
+            if comm is world and e == -5e-4:
+                moved = fe2.place((fe2.placement.home + 1) % comm.size)
+                assert moved == (8 if comm.size > 1 else 0)
+        runs.append((fe2, top))
+    (kept, kept_top), (alone, _) = runs
+    assert world.allreduce(kept.n, MPI.SUM) == alone.n == 8
+    assert world.allreduce(len(kept.held), MPI.SUM) == 8
+    if world.size > 1:
+        assert not set(kept.held) & {int(g) for g in kept.global_point}
+    stress, ref = kept.gather(kept.stress()), alone.gather(alone.stress())
+    error = world.bcast(np.abs(stress - ref).max() if world.rank == 0 else None)
+    assert error <= 1e-9 * P0
+
+    base = world.bcast(tmp_path_factory.mktemp("fe2_moves") if world.rank == 0 else None)
+    kept.write_checkpoint(base / "checkpoint")
+    fresh, fresh_top = biaxial(world, (2, 2), protos, "fe2_par_fresh_")
+    fresh.read_checkpoint(base / "checkpoint")
+    np.testing.assert_array_equal(fresh.placement.worker, kept.placement.worker)
+    for run, top in ((kept, kept_top), (fresh, fresh_top)):
+        top.value = -1.5e-3 * H
+        run.solve()
+    np.testing.assert_array_equal(fresh.stress(), kept.stress())
