@@ -104,6 +104,10 @@ parser.add_argument("--hardening", type=float, nargs="+", default=[0.0],
                     help="the Drucker-Prager cases' hardening of the cohesion [Pa per unit equivalent plastic "
                          "strain], each with every plastic case (0: perfectly plastic; a window driven by its "
                          "grains then drifts once the continuum round it yields)")
+parser.add_argument("--integrator", choices=("implicit", "explicit"), default="implicit",
+                    help="the coupled cases' continuum time stepping (continuum.integrator): generalized-"
+                         "alpha, or central differences on a lumped mass substepped below the stability "
+                         "limit (granfe.explicit: a plastic step without a solve)")
 parser.add_argument("--stiffness", type=float, default=1.0,
                     help="coupling continuum_stiffness: the continuum's constants times this (the coupled cases)")
 parser.add_argument("--friction-deg", type=float, default=30.0,
@@ -173,7 +177,8 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
                     dict(continuum=continuum, continuum_friction_deg=args.friction_deg)) | (
                     {} if constants == "lattice" else dict(continuum_constants=constants)) | (
                     dict(continuum_hardening=hardening) if hardening else {}) | (
-                    dict(continuum_stiffness=args.stiffness) if window and args.stiffness != 1.0 else {}) | {
+                    dict(continuum_stiffness=args.stiffness) if window and args.stiffness != 1.0 else {}) | (
+                    dict(continuum_integrator=args.integrator) if window and args.integrator != "implicit" else {}) | {
                     # the handshake named only off its default (the records before it had none)
                     k: v for k, v in exchange(window).items() if k != "handshake" or v != parser.get_default(k)}
 
@@ -289,7 +294,8 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     full DEM of a rigid box the size of window ``box``, or the coupled chamber."""
     tag = ("" if continuum == "micropolar" else "_dp") + CONSTANTS_TAGS[constants] + (
         f"_h{hardening:g}" if hardening else "") + (
-        f"_k{args.stiffness:g}" if window and args.stiffness != 1.0 else "") + "".join(
+        f"_k{args.stiffness:g}" if window and args.stiffness != 1.0 else "") + (
+        "_explicit" if window and args.integrator != "implicit" else "") + "".join(
         EXCHANGE_TAGS[k](v) for k, v in exchange(window).items() if v != parser.get_default(k))
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
@@ -374,6 +380,8 @@ def case_label(case: dict) -> str:
         label += f", H {case['hardening'] / 1e6:g} MPa"
     if case.get("stiffness", 1.0) != 1.0:
         label += f", stiffness x{case['stiffness']:g}"
+    if case.get("integrator", "implicit") != "implicit":
+        label += f", {case['integrator']} continuum"
     if case.get("exchange", {}).get("interface", "loose") != "loose":
         label += f", {case['exchange']['interface']} exchange"
     return label
@@ -482,7 +490,8 @@ def compare(bc: str) -> dict:
         push = float(np.mean([r["push_s"] for r in runs]))
         cpu = cpu_total(runs)
         case = {"window_half_width": window, "continuum": continuum, "constants": constants,
-                "hardening": hardening, "stiffness": args.stiffness, "exchange": exchange(window),
+                "hardening": hardening, "stiffness": args.stiffness, "integrator": args.integrator,
+                "exchange": exchange(window),
                 "grains": runs[0]["grains"],
                 "dofs": runs[0]["dofs"],
                 "setup_s": [r["setup_s"] for r in runs], "push_s": [r["push_s"] for r in runs],
