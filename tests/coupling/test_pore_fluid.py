@@ -5,12 +5,13 @@ seepage, consolidation of a grain column, bad input.
 Tolerances: exactness (1e-10) where the answer lies in the discrete spaces (lattice
 porosity, constant permeability, conservation of the grains' volume, of the flux and of the
 seepage force, serial == 2 ranks); 0.01 of U between the coupled column and its closed-form
-1D drag (the groups fixed at the start, the FE's relocated: measured 0.005); physics: 2 % for Kozeny-Carman through a random packing (the cell-to-cell
-scatter of the porosity, ~40 grains per cell, makes the flux differ from that of the mean
-porosity: measured 0.02-1.1 %), 5 % for the lift-off gradient (ramped in 1 % steps; measured
-1.02 i_c, seed-dependent), 10 % of the settlement for 1, 4 and 16 DEM steps per fluid step
-(the fluid's response lags by up to a fluid step; measured 1-7 %), 8 % of U for Terzaghi on
-the lattice column (the grain column's own departure from a uniform elastic one: 5.7 %).
+1D drag (the groups fixed at the start, the FE's relocated: measured 0.005); physics: 2 %
+for Kozeny-Carman through a random packing (the cell-to-cell scatter of the porosity, ~40
+grains per cell, makes the flux differ from that of the mean porosity: measured 0.02-1.1
+%), 5 % for the lift-off gradient (ramped in 1 % steps; measured 1.02 i_c, seed-dependent),
+10 % of the settlement for 1, 4 and 16 DEM steps per fluid step (the fluid's response lags
+by up to a fluid step; measured 1-7 %), 8 % of U for Terzaghi on the lattice column (the
+grain column's own departure from a uniform elastic one: 5.7 %).
 """
 
 import math
