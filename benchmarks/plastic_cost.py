@@ -49,7 +49,15 @@ Variants: ``elastic`` (the affine step: one solve with the Jacobian factorised o
 ``ONE_LU_PER_STEP``), ``plastic_elastic_qn`` (quasi-Newton on the elastic Jacobian
 factorised once for the run, the default now) and ``plastic_elastic_qn_tight`` (the same
 stopped at a thousandth of the absolute tolerance, compared with ``plastic_newton_tight``,
-Newton stopped there: the difference from Newton's answer is the tolerance's). Per variant
+Newton stopped there: the difference from Newton's answer is the tolerance's), and the explicit
+steps (``elastic_explicit``, ``plastic_explicit``: :class:`granfe.explicit.CentralDifference`,
+central differences on a lumped mass, the step split into substeps below the stability limit
+it measures; the plastic one through the Drucker-Prager kernel that fuses the return with the
+element forces: no solve). ``elastic_fine_dt`` / ``plastic_fine_dt``: the implicit step at an
+eighth of dt (quasi-Newton at a thousandth of the tolerance), against which each variant's
+time-discretisation error is read (``*_difference_vs_fine_dt``). Each set runs at every
+``--dynamic-E`` (20 MPa: the affine constants' stiffness; 1.2 MPa: the window's probed in
+situ, which the chamber runs now). Per variant
 the step times (min and median over steps and repeats, wall and CPU), the iterations, the LU
 factorisations of a run (PETSc's ``MatLUFactorNum`` count), the yielding share and punch
 force at the end, and the largest difference of the final fields and the punch force from
@@ -58,7 +66,9 @@ Newton's at the same tolerance. A run of some meshes replaces only those meshes'
 Run: ``python benchmarks/plastic_cost.py`` (serial; ``--h-window 0.02 0.01`` for about 10 min on
 the 2-core VM beside other jobs); the dynamic case alone, one mesh a run (each under 5 min):
 ``python benchmarks/plastic_cost.py --cases dynamic --dynamic-h 0.006 --repeat 3``, then
-``--dynamic-h 0.0045 --repeat 1``.
+``--dynamic-h 0.0045 --repeat 1``; recorded 2026-12-03: ``--dynamic-h 0.006 --repeat 2`` and
+``--dynamic-h 0.0045 --dynamic-E 20e6 --dynamic-nu 0.25 --repeat 1 --dynamic-variants
+plastic_elastic_qn elastic_explicit plastic_explicit plastic_fine_dt elastic_fine_dt``.
 """
 
 from __future__ import annotations
