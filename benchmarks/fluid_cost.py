@@ -4,11 +4,16 @@ A 3D box of spheres on a simple-cubic lattice (touching, a small random velocity
 walls: a quiet packing that needs no settling) is stepped dry and with a
 `coupling.pore_fluid.DarcyFlow` (P1 porosity on tetrahedra, ~80 grains a node's support:
 affine cells, which `coupling.locate` pulls back in one vectorised solve), drained top, a
-fluid step every ``--every`` DEM steps with the implicit drag in every DEM step. Measured
-``--repeat`` times per case (fresh simulations, kernels and forms compiled by a warm-up
-first): the wall and CPU time per DEM step; the fluid's share, wet / dry - 1, from the
-medians and from the minima; and the drag hook alone (the fluid solved once, then only the
-hook). The CPU model from ``/proc/cpuinfo``.
+fluid step every ``--every`` DEM steps with the implicit drag in every DEM step (inside the
+fused step loop: ``sim.step(m, drag=...)``). Measured in ``--repeat`` interleaved rounds
+(each round times the dry run, the drag alone and every wet case once, fresh simulations,
+kernels and forms compiled by a warm-up first, so a change of the machine's load falls on
+all cases alike): the wall and CPU time per DEM step; the fluid's share, wet / dry - 1,
+from the medians and from the minima; the drag alone (the fluid solved once, then only the
+drag); and where a fluid step's CPU time goes (grains to mesh: locating the grains and the
+basis at their centroids, porosity and velocity; the pressure's assembly and solve; the
+forces back: seepage, drag coefficients, the DEM's external forces and the drag's set-up).
+The CPU model and the load from ``benchmarks/machine.py``.
 
 Run: ``python benchmarks/fluid_cost.py`` (serial; ~3 min on the 2-core VM);
 ``GRANFE_SHORT=1`` for a quick look.
@@ -27,7 +32,7 @@ from mpi4py import MPI
 
 import numpy as np
 from dolfinx import mesh
-from machine import cpu_model
+from machine import machine
 
 from coupling.pore_fluid import DarcyFlow, PoreFluidParameters
 from dem import ContactMaterial, Particles, Simulation, box_walls
@@ -91,11 +96,33 @@ def time_wet(n, steps, every):
     return timed(lambda: fl.advance(steps, every), steps)
 
 
-def time_hook(n, steps):
+def time_drag(n, steps):
     sim, side = box(n)
     fl = fluid_on(sim, side, n)
     fl.step(steps * sim.dt)
-    return timed(lambda: sim.step(steps, hook=fl.substep_hook()), steps)
+    return timed(lambda: sim.step(steps, drag=fl.drag), steps)
+
+
+def fluid_step_parts(n, every, blocks=30):
+    """CPU seconds of one fluid step and of its parts, mean over ``blocks`` fluid steps
+    with ``every`` DEM steps between (the grains move, as in a run)."""
+    sim, side = box(n)
+    fl = fluid_on(sim, side, n)
+    fl.advance(every, every)
+    parts = {"grains_to_mesh": 0.0, "pressure_solve": 0.0, "forces_to_grains": 0.0}
+    for _ in range(blocks):
+        c0 = time.process_time()
+        fl.update_from_grains()
+        c1 = time.process_time()
+        fl._problem.solve()      # what DarcyFlow.solve adds to these is bookkeeping
+        c2 = time.process_time()
+        fl.apply_forces()
+        c3 = time.process_time()
+        for k, dc in zip(parts, (c1 - c0, c2 - c1, c3 - c2), strict=True):
+            parts[k] += dc / blocks
+        sim.step(every, drag=fl.drag)
+    parts["total"] = sum(parts.values())
+    return parts
 
 
 def stats(samples, k):
@@ -104,32 +131,43 @@ def stats(samples, k):
     return {"min": min(a), "median": float(np.median(a))}
 
 
-results = {"cpu": cpu_model(), "load_average": os.getloadavg(),
+results = {"machine": machine(), "load_average_start": os.getloadavg(),
            "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", 0)), "steps": args.steps,
            "repeat": args.repeat, "cases": []}
 for n in args.n_side:
     time_dry(n, 20)                         # compile and warm up
     time_wet(n, 20, 10)
-    dry = [time_dry(n, args.steps) for _ in range(args.repeat)]
-    hook = [time_hook(n, args.steps) for _ in range(args.repeat)]
+    dry, drag, wet = [], [], {e: [] for e in args.every}
+    for _ in range(args.repeat):            # interleaved rounds
+        dry.append(time_dry(n, args.steps))
+        drag.append(time_drag(n, args.steps))
+        for every in args.every:
+            wet[every].append(time_wet(n, args.steps, every))
     case = {"grains": n**3, "dry_step_s": stats(dry, 0), "dry_step_cpu_s": stats(dry, 1),
-            "dry_plus_drag_hook_s": stats(hook, 0), "dry_plus_drag_hook_cpu_s": stats(hook, 1),
-            "wet": []}
+            "dry_plus_drag_s": stats(drag, 0), "dry_plus_drag_cpu_s": stats(drag, 1),
+            "fluid_step_cpu_s": fluid_step_parts(n, max(args.every)), "wet": []}
+    d = case["dry_step_cpu_s"]
+    h = {k: case["dry_plus_drag_cpu_s"][k] / d[k] - 1 for k in ("min", "median")}
+    case["drag_overhead_cpu"] = h
     for every in args.every:
-        wet = [time_wet(n, args.steps, every) for _ in range(args.repeat)]
-        row = {"every": every, "step_s": stats(wet, 0), "step_cpu_s": stats(wet, 1)}
+        row = {"every": every, "step_s": stats(wet[every], 0),
+               "step_cpu_s": stats(wet[every], 1)}
         for k, name in ((0, ""), (1, "_cpu")):
-            w, d = stats(wet, k), stats(dry, k)
-            row["overhead_median" + name] = w["median"] / d["median"] - 1
-            row["overhead_min" + name] = w["min"] / d["min"] - 1
+            w, dd = stats(wet[every], k), stats(dry, k)
+            row["overhead_median" + name] = w["median"] / dd["median"] - 1
+            row["overhead_min" + name] = w["min"] / dd["min"] - 1
         case["wet"].append(row)
-        h = stats(hook, 1)["min"] / case["dry_step_cpu_s"]["min"] - 1
-        print(f"{n**3} grains, fluid every {every}: dry {1e6 * case['dry_step_cpu_s']['min']:.0f} "
-              f"us/step, wet {1e6 * row['step_cpu_s']['min']:.0f} us/step (CPU, min): fluid "
+        print(f"{n**3} grains, fluid every {every}: dry {1e6 * d['min']:.0f} us/step, wet "
+              f"{1e6 * row['step_cpu_s']['min']:.0f} us/step (CPU, min): fluid "
               f"+{100 * row['overhead_min_cpu']:.0f} % (min), "
               f"+{100 * row['overhead_median_cpu']:.0f} % (median); wall "
-              f"+{100 * row['overhead_min']:.0f} % (min); the drag hook alone +{100 * h:.0f} %",
-              flush=True)
+              f"+{100 * row['overhead_min']:.0f} % (min); the drag alone "
+              f"+{100 * h['min']:.0f} % (min), +{100 * h['median']:.0f} % (median)", flush=True)
+    parts = case["fluid_step_cpu_s"]
+    print(f"{n**3} grains, a fluid step {1e3 * parts['total']:.2f} ms CPU: "
+          + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in parts.items() if k != "total"),
+          flush=True)
     results["cases"].append(case)
+results["load_average_end"] = os.getloadavg()
 args.out.mkdir(parents=True, exist_ok=True)
 (args.out / "results.json").write_text(json.dumps(results, indent=1))

@@ -14,8 +14,8 @@ import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
 import dolfinx.geometry
 import numpy as np
 
-__all__ = ["PointsOutsideMesh", "inside_reference", "locate_owned", "owner_ranks", "pad_points",
-           "reference_coordinates", "relocate"]
+__all__ = ["PointsOutsideMesh", "affine_maps", "inside_reference", "locate_owned", "owner_ranks",
+           "pad_points", "reference_coordinates", "relocate"]
 
 
 class PointsOutsideMesh(ValueError):
@@ -112,11 +112,31 @@ def locate_owned(
 _SIMPLICES = ("interval", "triangle", "tetrahedron")
 
 
-def reference_coordinates(mesh: dolfinx.mesh.Mesh, x: np.ndarray, cells: np.ndarray) -> np.ndarray:
+def _affine(mesh) -> bool:
+    return (mesh.geometry.cmaps[0].degree == 1 and mesh.topology.cell_type.name in _SIMPLICES
+            and mesh.topology.dim == mesh.geometry.dim)
+
+
+def affine_maps(mesh: dolfinx.mesh.Mesh):
+    """(x_0 (c, gdim), J^-1 (c, tdim, gdim)) of every local cell of an affine simplex mesh
+    (P1 geometry), for :func:`reference_coordinates` and :func:`relocate` on a mesh that
+    does not move (the caller keeps them; they are stale once the geometry changes), or None
+    for other meshes."""
+    if not _affine(mesh):
+        return None
+    gdim = mesh.geometry.dim
+    v = mesh.geometry.x[mesh.geometry.dofmaps[0], :gdim]   # (c, tdim + 1, gdim)
+    J = np.transpose(v[:, 1:, :] - v[:, :1, :], (0, 2, 1))
+    return np.ascontiguousarray(v[:, 0, :]), np.linalg.inv(J)
+
+
+def reference_coordinates(mesh: dolfinx.mesh.Mesh, x: np.ndarray, cells: np.ndarray,
+                          maps=None) -> np.ndarray:
     """Pull points x (n, 3) back to the reference cell of their cells (n,) -> (n, tdim).
 
-    Affine simplices (P1 geometry) in one vectorised solve ``X = J^-1 (x - x_0)``; other
-    cells point by point through the coordinate element (Newton for non-affine maps).
+    Affine simplices (P1 geometry) in one vectorised solve ``X = J^-1 (x - x_0)`` (with
+    ``maps`` from :func:`affine_maps`: a product, the inverses taken once); other cells
+    point by point through the coordinate element (Newton for non-affine maps).
     """
     tdim, gdim = mesh.topology.dim, mesh.geometry.dim
     cmap = mesh.geometry.cmaps[0]
@@ -124,7 +144,10 @@ def reference_coordinates(mesh: dolfinx.mesh.Mesh, x: np.ndarray, cells: np.ndar
     X = np.empty((x.shape[0], tdim), dtype=np.float64)
     if x.shape[0] == 0:
         return X
-    if cmap.degree == 1 and mesh.topology.cell_type.name in _SIMPLICES and tdim == gdim:
+    if maps is not None:
+        x0, Jinv = maps
+        return np.einsum("nij,nj->ni", Jinv[cells], x[:, :gdim] - x0[cells])
+    if _affine(mesh):
         v = mesh.geometry.x[dofmap[cells], :gdim]  # (n, tdim + 1, gdim), reference vertex order
         J = np.transpose(v[:, 1:, :] - v[:, :1, :], (0, 2, 1))  # (n, gdim, tdim)
         return np.linalg.solve(J, (x[:, :gdim] - v[:, 0, :])[:, :, None])[:, :, 0]
@@ -144,7 +167,8 @@ def inside_reference(cell_type: str, X: np.ndarray, tol: float = 1e-12) -> np.nd
 
 
 def relocate(
-    mesh: dolfinx.mesh.Mesh, points: np.ndarray, cells: np.ndarray, padding: float = 1e-10
+    mesh: dolfinx.mesh.Mesh, points: np.ndarray, cells: np.ndarray, padding: float = 1e-10,
+    maps=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Cells and reference coordinates of moved points, searching only for those that left.
 
@@ -156,6 +180,7 @@ def relocate(
         mesh: the FE mesh.
         points: (n, gdim) new centroids [m], same points and order as ``cells``.
         cells: (n,) their previous owned local cells.
+        maps: :func:`affine_maps` of the mesh, or None.
 
     Returns:
         cells (n,) int32, X (n, tdim), changed (n,) bool (cell differs from before) and
@@ -166,7 +191,7 @@ def relocate(
     cells = np.array(cells, dtype=np.int32)
     if cells.shape != (x.shape[0],):
         raise ValueError(f"cells must have shape ({x.shape[0]},), got {cells.shape}")
-    X = reference_coordinates(mesh, x, cells)
+    X = reference_coordinates(mesh, x, cells, maps)
     left = np.flatnonzero(~inside_reference(mesh.topology.cell_type.name, X, tol=1e-12))
     changed = np.zeros(x.shape[0], dtype=bool)
     lost = np.zeros(x.shape[0], dtype=bool)
@@ -185,5 +210,5 @@ def relocate(
             else:
                 lost[i] = True
         found = left[~lost[left]]
-        X[found] = reference_coordinates(mesh, x[found], cells[found])
+        X[found] = reference_coordinates(mesh, x[found], cells[found], maps)
     return cells, X, changed, lost

@@ -70,11 +70,11 @@ from petsc4py import PETSc
 import basix.ufl
 import numpy as np
 import ufl
-from dolfinx import default_scalar_type, fem
+from dolfinx import default_scalar_type, fem, la
 from dolfinx import mesh as _mesh
 from dolfinx.fem.petsc import LinearProblem, assemble_matrix, assemble_vector
 
-from coupling.locate import owner_ranks, relocate
+from coupling.locate import affine_maps, owner_ranks, relocate
 from coupling.operators import FieldBasis
 from dem.drag import GroupDrag, group_means
 from dem.state import FREE
@@ -105,7 +105,7 @@ class PoreFluidParameters:
         pressure_degree: Lagrange degree of p, 1 or 2.
         implicit_drag: the velocity components (``"all"``, ``"none"`` or axes such as
             ``"y"``, ``"xz"``) whose cell-mean changes between two fluid steps feel the
-            fluid's linearised response at once (:meth:`DarcyFlow.substep_hook`); leave out
+            fluid's linearised response at once (:attr:`DarcyFlow.drag`); leave out
             the axes along which the fluid cannot resist a uniform motion (a periodic
             direction), where the drag would only slow the cell-mean's changes.
     """
@@ -180,7 +180,8 @@ class DarcyFlow:
         sim: the `dem.Simulation` (held whole on every rank); its ``gravity`` sets buoyancy.
         params: :class:`PoreFluidParameters`.
         facet_tags, tag_names: named boundaries (physical-group names -> tag values).
-        petsc_options: overrides of the direct (MUMPS LU) linear solve.
+        petsc_options: overrides of the direct linear solve (LU: PETSc's on one rank, MUMPS
+            on several).
 
     Boundaries are undrained (no flux) unless :meth:`pressure`, :meth:`drained` or
     :meth:`flux` say otherwise. :meth:`step` solves one fluid step and applies the forces;
@@ -188,7 +189,7 @@ class DarcyFlow:
 
     Sub-cycling: the forces of a fluid step are held over its DEM steps, and their change
     with the grains' cell-mean velocity U since the fluid step is taken implicitly in every
-    DEM step (:meth:`substep_hook`, `dem.drag.GroupDrag`): the fluid's response to U is, per
+    DEM step (:attr:`drag`, `dem.drag.GroupDrag`): the fluid's response to U is, per
     grain, the drag ``-alpha_i (U - U_ref)`` with
 
         alpha_i = V_i mu_f / (k (1 - n)) * D / (1 + D),   D = k dt_f pi^2 / (mu_f n beta_f h^2),
@@ -220,10 +221,13 @@ class DarcyFlow:
         cell = domain.basix_cell()
         fam, deg = ("DG", 0) if params.porosity_space == "DG0" else ("Lagrange", 1)
         pdeg = params.pressure_degree
-        self._spaces = {"n": _GrainSpace(domain, basix.ufl.element(fam, cell, deg)),
-                        "v": _GrainSpace(domain, basix.ufl.element(fam, cell, deg,
-                                                                   shape=(gdim,)))}
-        self.Vn, self.Vv = self._spaces["n"].V, self._spaces["v"].V
+        # one basis at the grains for the scalar and the vector fields (the vector space is
+        # the scalar one blocked: component c of dof a is local entry a * gdim + c)
+        self._grains = _GrainSpace(domain, basix.ufl.element(fam, cell, deg))
+        self.Vn = self._grains.V
+        self.Vv = fem.functionspace(domain, basix.ufl.element(fam, cell, deg, shape=(gdim,)))
+        if not np.array_equal(self.Vv.dofmap.list, self.Vn.dofmap.list):
+            raise RuntimeError("the vector grain space does not block the scalar one")
         self.Vp = fem.functionspace(domain, basix.ufl.element("Lagrange", cell, pdeg))
         self.porosity = fem.Function(self.Vn, name="porosity")
         self.velocity = fem.Function(self.Vv, name="grain_velocity")
@@ -240,9 +244,13 @@ class DarcyFlow:
         self.bcs: list = []
         self._neumann: list = []
         self._problem = None
+        # LU: PETSc's own on one rank (MUMPS's set-up per factorisation is most of a small
+        # mesh's solve), MUMPS across ranks
         self._petsc = {"ksp_type": "preonly", "pc_type": "lu",
-                       "pc_factor_mat_solver_type": "mumps", **(petsc_options or {})}
+                       "pc_factor_mat_solver_type": "petsc" if domain.comm.size == 1 else
+                       "mumps", **(petsc_options or {})}
         self._mine = None   # global rows of the grains this rank evaluates
+        self._maps = affine_maps(domain)   # the mesh does not move: its pull-backs once
         self.forces = np.zeros((sim.p.n, 3))  #: the fluid's force on every grain [N] (last step)
         #: other forces [N] (n, 3) handed to the DEM with the fluid's (e.g. a surcharge):
         #: `dem.Simulation.set_external_force` holds one set, which :meth:`apply_forces` sets
@@ -275,29 +283,21 @@ class DarcyFlow:
         return m.x.array.copy()
 
     def grains_to_mesh(self) -> None:
-        """Locate the grains again and evaluate the bases at their centroids (collective).
-        While every grain stays in its rank's cells only the moved ones are searched for, once
-        for all the spaces; if one left them (another rank's cells, or the mesh) the grains
-        are shared out anew (:func:`coupling.locate.owner_ranks` names those outside)."""
+        """Locate the grains again and evaluate the basis at their centroids (collective).
+        While every grain stays in its rank's cells only the moved ones are searched for; if
+        one left them (another rank's cells, or the mesh) the grains are shared out anew
+        (:func:`coupling.locate.owner_ranks` names those outside)."""
         x = self.sim.p.x[:, : self.domain.geometry.dim]
         if self._mine is not None:
-            mine = self._mine
-            cells, X, changed, lost = relocate(self.domain, x[mine], self._spaces["n"].basis.cells)
+            mine, basis = self._mine, self._grains.basis
+            cells, X, changed, lost = relocate(self.domain, x[mine], basis.cells,
+                                               maps=self._maps)
             if self.domain.comm.allreduce(int(lost.sum())) == 0:
-                for space in self._unique_spaces():
-                    space.basis.update(x[mine], located=(cells, X, changed))
+                self._grains.update(x[mine], (cells, X, changed))
                 return
         owners = owner_ranks(self.domain, x)
         self._mine = np.flatnonzero(owners == self.domain.comm.rank)
-        for space in self._unique_spaces():
-            space.build(x[self._mine])
-
-    def _unique_spaces(self):
-        seen = []
-        for s in self._spaces.values():
-            if all(s is not t for t in seen):
-                seen.append(s)
-        return seen
+        self._grains.build(x[self._mine])
 
     def _work(self, name: str, V) -> fem.Function:
         """A scratch Function on V kept between fluid steps (its PETSc wrapper is made once)."""
@@ -309,7 +309,7 @@ class DarcyFlow:
     def _solid_fraction(self) -> np.ndarray:
         """Lumped-mass projection sum_i V_i N_a(x_i) / int N_a of the local dofs of Vn."""
         f = self._work("solid", self.Vn)
-        self._spaces["n"].sum_to(self.volume[self._mine], f)
+        self._grains.sum_to(self.volume[self._mine], f)
         return f.x.array / self.lumped_mass
 
     def _clip_porosity(self) -> None:
@@ -319,13 +319,11 @@ class DarcyFlow:
     def _mean_velocity(self) -> None:
         """v_s = sum V_i v_i N_a / sum V_i N_a (0 where no grain is near)."""
         gdim = self.domain.geometry.dim
-        p, mine, space = self.sim.p, self._mine, self._spaces["v"]
-        vol = self.volume[mine]
-        num, den = self._work("v_num", self.Vv), self._work("v_den", self.Vv)
-        space.sum_to(vol[:, None] * p.v[mine, :gdim], num)
-        space.sum_to(np.repeat(vol[:, None], gdim, axis=1), den)
-        d = den.x.array
-        self.velocity.x.array[:] = np.divide(num.x.array, d, out=np.zeros_like(d), where=d > 0)
+        p, mine = self.sim.p, self._mine
+        self._grains.sum_to(self.volume[mine, None] * p.v[mine, :gdim], self.velocity)
+        v = self.velocity.x.array.reshape(-1, gdim)
+        d = self._work("solid", self.Vn).x.array   # sum_i V_i N_a(x_i), of this update
+        np.divide(v, d[:, None], out=v, where=d[:, None] > 0)
 
     def update_from_grains(self) -> None:
         """Porosity and mean grain velocity on the mesh from the grains now (collective). The
@@ -333,7 +331,7 @@ class DarcyFlow:
         self.grains_to_mesh()
         self.porosity.x.array[:] = 1.0 - self._solid_fraction()
         self._clip_porosity()
-        self._mean_velocity()
+        self._mean_velocity()     # after the solid fraction: it divides by its sums
 
     def solid_volume(self) -> float:
         """The grains' volume sum V_i [m^3] (= int (1 - n) dx before clipping)."""
@@ -475,15 +473,17 @@ class DarcyFlow:
         every grain, the same on every rank."""
         gdim = self.domain.geometry.dim
         mine = self._mine
-        per_volume = self._spaces["v"].at_grains(self._seepage_per_volume())
-        n = self._spaces["n"].at_grains(self.porosity)[:, 0]
-        cells = self._spaces["n"].basis.cells
+        per_volume = self._grains.at_grains(self._seepage_per_volume())
+        n = self._grains.at_grains(self.porosity)[:, 0]
+        cells = self._grains.basis.cells
         tdim = self.domain.topology.dim
         out = np.zeros((self.sim.p.n, 5))
         out[mine, :gdim] = self.volume[mine, None] * per_volume
         out[mine, 3] = self._drag_coefficient(self.volume[mine], n, self._cell_size[cells])
         out[mine, 4] = self.domain.topology.index_map(tdim).local_to_global(cells) + 1
-        out = self.domain.comm.allreduce(out)   # each grain on one rank: an exact sum
+        comm = self.domain.comm
+        if comm.size > 1:     # each grain on one rank: an exact sum
+            comm.Allreduce(MPI.IN_PLACE, out, op=MPI.SUM)
         f = np.zeros((self.sim.p.n, 3))
         f[:, :gdim] = out[:, :gdim]
         f -= self.params.density * self.volume[:, None] * self.sim.gravity[None, :]
@@ -514,8 +514,12 @@ class DarcyFlow:
         if not any(flags):
             self.drag = None
             return
-        cells, group = np.unique(cell, return_inverse=True)
-        u_ref = group_means(self.sim.p.v, group, self.volume, len(cells))
+        # the cells holding grains, numbered 0..G-1 (a count over the mesh's cells: np.unique
+        # sorts, the fluid's step is paid every few DEM steps)
+        held = np.bincount(cell, minlength=self.domain.topology.index_map(
+            self.domain.topology.dim).size_global) > 0
+        group = (np.cumsum(held) - 1)[cell]
+        u_ref = group_means(self.sim.p.v, group, self.volume, int(held.sum()))
         self.drag = GroupDrag(group, self.volume, alpha, u_ref, flags)
 
     def substep_hook(self):
@@ -526,8 +530,9 @@ class DarcyFlow:
 
     def step(self, dt: float | None) -> fem.Function:
         """One fluid step of ``dt`` [s] (None: steady) at the grains' state now, then its
-        forces to the grains; pass :meth:`substep_hook` to the DEM steps that follow
-        (``sim.step(m, hook=flow.substep_hook())``, as :meth:`advance` does). Collective."""
+        forces to the grains; pass :attr:`drag` to the DEM steps that follow
+        (``sim.step(m, drag=flow.drag)``, as :meth:`advance` does; or the slower
+        :meth:`substep_hook`, the same bits). Collective."""
         self.solve(dt)
         self.apply_forces()
         return self.p
@@ -542,39 +547,57 @@ class DarcyFlow:
         while done < dem_steps:
             m = min(int(every), dem_steps - done)
             self.step(m * self.sim.dt)
-            self.sim.step(m, hook=self.substep_hook())
+            self.sim.step(m, drag=self.drag)     # (the hook's bits, in the fused loop)
             done += m
 
 
 class _GrainSpace:
-    """A DG0/P1/DG space whose basis is evaluated at the grains' centroids."""
+    """A scalar DG0/P1 space whose basis N is evaluated at the grains' centroids, acting on
+    it and on its blocked vector space (N applied per component). N's rows hold the same
+    number of entries (the cell's dofs), kept as (m, nd) arrays: the products are a gather
+    and a count, without building sparse matrices each fluid step."""
 
     def __init__(self, domain, element):
         self.V = fem.functionspace(domain, element)
         self.basis: FieldBasis | None = None
-        self._vec = None    # (matrix, its left vector): kept while the matrix is
+        self._cols = self._w = None    # (m, nd) dofs and basis values of the grains' cells
 
     def build(self, points: np.ndarray) -> None:
         if self.basis is not None:
             self.basis.matrix.destroy()
         self.basis = FieldBasis.build(self.V, points)
+        self._rows()
+
+    def update(self, points: np.ndarray, located) -> None:
+        self.basis.update(points, located=located)
+        self._rows()
+
+    def _rows(self) -> None:
+        N = self.basis.local
+        m = N.shape[0]
+        nd = self.V.dofmap.dof_layout.num_dofs
+        if N.nnz != m * nd:
+            raise RuntimeError(f"the grains' basis rows must hold {nd} entries each")
+        self._cols = N.indices.reshape(m, nd)
+        self._w = N.data.reshape(m, nd)
 
     def sum_to(self, values: np.ndarray, out: fem.Function) -> None:
-        """``out = N^T values``: per dof, the sum over the grains of all ranks of their
-        values (n, value_size) times the basis function at their centroid. Collective."""
-        A = self.basis.matrix
-        if self._vec is None or self._vec[0] is not A:
-            if self._vec is not None:
-                self._vec[1].destroy()
-            self._vec = (A, A.createVecLeft())
-        vec = self._vec[1]
-        vec.setArray(np.ascontiguousarray(values, dtype=float).ravel())
-        A.multTranspose(vec, out.x.petsc_vec)
+        """``out = N^T values``: per dof (and component), the sum over the grains of all ranks
+        of their values (m,) or (m, bs) times the basis function at their centroid; ``out``
+        on V or its blocked space. Collective (the ghosts' sums go to their owners)."""
+        bs = out.function_space.dofmap.bs
+        a = out.x.array.reshape(-1, bs)
+        v = np.asarray(values, dtype=float).reshape(len(self._cols), bs)
+        cols = self._cols.ravel()
+        for c in range(bs):
+            a[:, c] = np.bincount(cols, (self._w * v[:, c, None]).ravel(), minlength=len(a))
+        out.x.scatter_reverse(la.InsertMode.add)
         out.x.scatter_forward()
 
     def at_grains(self, u: fem.Function) -> np.ndarray:
-        """Values (n, value_size) of ``u`` (a Function on :attr:`V`) at this rank's grains."""
-        return self.basis.interpolate(u)
+        """Values (m, bs) of ``u`` (on V or its blocked space) at this rank's grains."""
+        bs = u.function_space.dofmap.bs
+        return np.einsum("gd,gdc->gc", self._w, u.x.array.reshape(-1, bs)[self._cols])
 
 
 def _finite(name: str, value) -> float:

@@ -276,7 +276,7 @@ t, curve, profiles = 0.0, [], []
 n_blocks = int(np.ceil(T_END * t_c / (args.every * sim.dt)))
 for _ in range(n_blocks):
     fluid.step(args.every * sim.dt)
-    sim.step(args.every, hook=fluid.substep_hook())
+    sim.step(args.every, drag=fluid.drag)
     t += args.every * sim.dt
     curve.append((t, y0 - surface(sim), float(probe(fluid.p, base)[0, 0])))
     profiles.append(layer_settlement(sim.p.x[:, 1]))

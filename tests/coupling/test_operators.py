@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from dolfinx import fem, mesh
 
-from coupling.locate import PointsOutsideMesh, owner_ranks
+from coupling.locate import PointsOutsideMesh, affine_maps, owner_ranks, reference_coordinates, relocate
 from coupling.operators import FieldBasis, NodalProjection, SingularProjection
 
 
@@ -227,6 +227,29 @@ def test_update_equals_fresh_build(sub):
     assert basis.update(moved) > 0
     assert proj.update() is True and proj.rebuilds == 2
     assert agrees_with_fresh(moved) < 1e-12
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_affine_maps_pull_back_as_the_solve(dim):
+    """The inverse Jacobians taken once (affine_maps) pull points back as the per-call solve
+    does, to round-off, and relocate with them finds the same cells (moved points included);
+    a quadrilateral mesh has none."""
+    comm = MPI.COMM_SELF
+    msh = mesh.create_unit_square(comm, 3, 4) if dim == 2 else mesh.create_unit_cube(comm, 2, 3, 2)
+    rng = np.random.default_rng(3)
+    x = np.zeros((400, 3))
+    x[:, :dim] = rng.uniform(0.0, 1.0, (400, dim))
+    V = fem.functionspace(msh, ("Lagrange", 1))
+    cells = FieldBasis.build(V, x[:, :dim]).cells
+    maps = affine_maps(msh)
+    np.testing.assert_allclose(reference_coordinates(msh, x, cells, maps),
+                               reference_coordinates(msh, x, cells), atol=1e-13)
+    moved = np.clip(x + 0.05 * rng.standard_normal(x.shape) * (np.arange(3) < dim), 0, 1)
+    fast, slow = relocate(msh, moved, cells, maps=maps), relocate(msh, moved, cells)
+    assert fast[2].any()
+    for a, b in zip(fast, slow, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-13)
+    assert affine_maps(mesh.create_unit_square(comm, 2, 2, mesh.CellType.quadrilateral)) is None
 
 
 def test_update_refuses_particles_that_left():

@@ -84,3 +84,32 @@ def test_bad_arrays_are_named():
         GroupDrag([0, 1], [1.0, 1.0], [1.0, 1.0], np.zeros((1, 3)))
     with pytest.raises(ValueError, match="alpha"):
         GroupDrag([0, 0], [1.0, 1.0], [1.0, -1.0], np.zeros((1, 3)))
+
+
+def test_fused_loop_drags_as_the_hook():
+    """``sim.step(n, drag=d)`` runs the drag inside the fused step loop: the same bits as the
+    Python loop with ``hook=d.hook(sim)`` (the drag applied at the same point of a step), in
+    a packing with contacts, walls, gravity and an external force, over neighbour builds."""
+    from dem import box_walls
+    from dem.packing import random_packing
+
+    x, r = random_packing([0, 0], [0.02, 0.02], 0.9e-3, 1.1e-3, 0.4, seed=1)
+    v0 = np.random.default_rng(2).normal(0, 0.05, (len(r), 2))
+    group = (x[:, 1] // 0.005).astype(np.int64)
+
+    def run(fused):
+        p = Particles.spheres(x, r, 2650.0, dim=2, v=np.c_[v0, np.zeros(len(r))])
+        sim = Simulation(p, MAT, walls=box_walls([0, 0, 0], [0.02, 1, 0], dim=2),
+                         gravity=(0, -9.81))
+        sim.set_external_force(np.arange(0, len(r), 3), [1e-4, -2e-4, 0.0])
+        drag = GroupDrag(group, p.radius**2, np.full(len(r), 50 * p.mass.mean() / sim.dt),
+                         np.full((group.max() + 1, 3), 1e-3))
+        for _ in range(4):
+            sim.step(150, drag=drag) if fused else sim.step(150, hook=drag.hook(sim))
+        assert sim.nl.builds > 1
+        return p.x.copy(), p.v.copy(), drag.force.copy(), sim.energy()
+
+    a, b = run(True), run(False)
+    for u, w in zip(a[:3], b[:3], strict=True):
+        assert np.array_equal(u, w)
+    assert a[3] == b[3]
