@@ -17,7 +17,8 @@ It is solved by backward Euler in P1 (or P2) with the grains as they are when it
 
     (n beta_f / dt) (p - p_old, q) + ((k / mu_f) grad p - v_s, grad q) = <g, q>.
 
-From the grains, with the FE basis evaluated at their centroids (:class:`FieldBasis`): the
+From the grains, with the FE basis evaluated at their centroids (the N of
+`coupling.operators.FieldBasis`, kept here as its rows, one per grain): the
 solid fraction is the lumped-mass projection ``phi_a = sum_i V_i N_a(x_i) / int N_a``
 (``DG0``, the default: the grains' volumes binned into cells; ``P1``: averaged over each
 node's support, twice the volume, so smoother; a linear N weighs a grain's body as its
@@ -74,8 +75,7 @@ from dolfinx import default_scalar_type, fem, la
 from dolfinx import mesh as _mesh
 from dolfinx.fem.petsc import LinearProblem, assemble_matrix, assemble_vector
 
-from coupling.locate import affine_maps, owner_ranks, relocate
-from coupling.operators import FieldBasis
+from coupling.locate import affine_maps, locate_owned, owner_ranks, relocate
 from dem.drag import GroupDrag, group_means
 from dem.state import FREE
 from granfe.problem import Where, boundary_facets
@@ -289,15 +289,15 @@ class DarcyFlow:
         (:func:`coupling.locate.owner_ranks` names those outside)."""
         x = self.sim.p.x[:, : self.domain.geometry.dim]
         if self._mine is not None:
-            mine, basis = self._mine, self._grains.basis
-            cells, X, changed, lost = relocate(self.domain, x[mine], basis.cells,
-                                               maps=self._maps)
+            mine = self._mine
+            cells, X, _, lost = relocate(self.domain, x[mine], self._grains.cells,
+                                         maps=self._maps)
             if self.domain.comm.allreduce(int(lost.sum())) == 0:
-                self._grains.update(x[mine], (cells, X, changed))
+                self._grains.evaluate(cells, X)
                 return
         owners = owner_ranks(self.domain, x)
         self._mine = np.flatnonzero(owners == self.domain.comm.rank)
-        self._grains.build(x[self._mine])
+        self._grains.evaluate(*locate_owned(self.domain, x[self._mine]))
 
     def _work(self, name: str, V) -> fem.Function:
         """A scratch Function on V kept between fluid steps (its PETSc wrapper is made once)."""
@@ -475,7 +475,7 @@ class DarcyFlow:
         mine = self._mine
         per_volume = self._grains.at_grains(self._seepage_per_volume())
         n = self._grains.at_grains(self.porosity)[:, 0]
-        cells = self._grains.basis.cells
+        cells = self._grains.cells
         tdim = self.domain.topology.dim
         out = np.zeros((self.sim.p.n, 5))
         out[mine, :gdim] = self.volume[mine, None] * per_volume
@@ -553,33 +553,22 @@ class DarcyFlow:
 
 class _GrainSpace:
     """A scalar DG0/P1 space whose basis N is evaluated at the grains' centroids, acting on
-    it and on its blocked vector space (N applied per component). N's rows hold the same
-    number of entries (the cell's dofs), kept as (m, nd) arrays: the products are a gather
-    and a count, without building sparse matrices each fluid step."""
+    it and on its blocked vector space (N applied per component). N is kept as its rows:
+    the (m, nd) dofs of each grain's cell and the basis values there (the products are a
+    gather and a count; no sparse matrix is built each fluid step)."""
 
     def __init__(self, domain, element):
         self.V = fem.functionspace(domain, element)
-        self.basis: FieldBasis | None = None
-        self._cols = self._w = None    # (m, nd) dofs and basis values of the grains' cells
+        self._element = self.V.ufl_element().basix_element
+        self.cells = np.zeros(0, np.int32)     # the grains' owned local cells
+        self._cols = self._w = None
 
-    def build(self, points: np.ndarray) -> None:
-        if self.basis is not None:
-            self.basis.matrix.destroy()
-        self.basis = FieldBasis.build(self.V, points)
-        self._rows()
-
-    def update(self, points: np.ndarray, located) -> None:
-        self.basis.update(points, located=located)
-        self._rows()
-
-    def _rows(self) -> None:
-        N = self.basis.local
-        m = N.shape[0]
-        nd = self.V.dofmap.dof_layout.num_dofs
-        if N.nnz != m * nd:
-            raise RuntimeError(f"the grains' basis rows must hold {nd} entries each")
-        self._cols = N.indices.reshape(m, nd)
-        self._w = N.data.reshape(m, nd)
+    def evaluate(self, cells: np.ndarray, X: np.ndarray) -> None:
+        """The basis at the grains in ``cells`` at reference points X (m, tdim)."""
+        self.cells = np.asarray(cells, np.int32)
+        self._cols = self.V.dofmap.list[self.cells]
+        self._w = self._element.tabulate(0, X)[0, :, :, 0] if len(self.cells) else \
+            np.zeros(self._cols.shape)
 
     def sum_to(self, values: np.ndarray, out: fem.Function) -> None:
         """``out = N^T values``: per dof (and component), the sum over the grains of all ranks
@@ -596,8 +585,11 @@ class _GrainSpace:
 
     def at_grains(self, u: fem.Function) -> np.ndarray:
         """Values (m, bs) of ``u`` (on V or its blocked space) at this rank's grains."""
-        bs = u.function_space.dofmap.bs
-        return np.einsum("gd,gdc->gc", self._w, u.x.array.reshape(-1, bs)[self._cols])
+        a = u.x.array.reshape(-1, u.function_space.dofmap.bs)
+        out = self._w[:, :1] * a[self._cols[:, 0]]
+        for k in range(1, self._cols.shape[1]):     # (a sum over the cell's dofs)
+            out += self._w[:, k:k + 1] * a[self._cols[:, k]]
+        return out
 
 
 def _finite(name: str, value) -> float:

@@ -25,6 +25,7 @@ import ufl
 from dolfinx import fem, mesh
 
 from coupling.locate import PointsOutsideMesh
+from coupling.operators import FieldBasis
 from coupling.pore_fluid import DarcyFlow, PoreFluidParameters, grain_volumes, kozeny_carman
 from dem import ContactMaterial, Particles, Simulation, box_walls, relax
 from dem.drag import GroupDrag
@@ -95,6 +96,30 @@ def test_random_packing_porosity_conserves_the_grains_volume(space):
     assert fl.solid_volume() == pytest.approx(solid, rel=1e-12)
     assert solid == pytest.approx(grain_volumes(r, 2).sum(), rel=1e-12)
     assert 1 - solid / (L * H) == pytest.approx(1 - solid_fraction(r, [0, 0], [L, H]), rel=1e-12)
+
+
+@pytest.mark.parametrize("space", ["DG0", "P1"])
+@pytest.mark.parametrize("dim, cell", [(2, "quadrilateral"), (2, "triangle"), (3, "tetrahedron")])
+def test_grain_basis_is_the_coupling_basis(space, dim, cell):
+    """The grains' basis rows (a gather and a count) against independent routes:
+    coupling.operators.FieldBasis's N^T for the sums, Function.eval at the centroids for
+    the values of a vector field (to round-off)."""
+    hi = (0.03, 0.02, 0.02)[:dim]
+    x, r = random_packing([0.0] * dim, hi, 0.9e-3, 1.1e-3, 0.3, seed=6)
+    sim = grains(x, r, dim)
+    kind = getattr(mesh.CellType, cell)
+    msh = mesh.create_rectangle(MPI.COMM_SELF, [[0, 0], list(hi)], [3, 2], kind) if dim == 2 \
+        else mesh.create_box(MPI.COMM_SELF, [[0, 0, 0], list(hi)], [3, 2, 2], kind)
+    fl = DarcyFlow(msh, sim, PoreFluidParameters(porosity_space=space))
+    pts = sim.p.x[:, :dim]
+    N = FieldBasis.build(fl.Vn, pts).local
+    values = np.random.default_rng(1).normal(size=(len(r), dim))
+    fl._grains.sum_to(values, fl.velocity)
+    np.testing.assert_allclose(fl.velocity.x.array.reshape(-1, dim), N.T @ values, atol=1e-13)
+    fl.velocity.interpolate(lambda X: np.vstack([1 + X[0] - 2 * X[dim - 1], X[1:dim] ** 2]))
+    cells = fl._grains.cells
+    expected = fl.velocity.eval(np.c_[pts, np.zeros((len(r), 3 - dim))], cells)
+    np.testing.assert_allclose(fl._grains.at_grains(fl.velocity), expected, atol=1e-13)
 
 
 # ---- (a) Darcy flow through a fixed packing ----------------------------------------------
