@@ -15,7 +15,7 @@ basis at their centroids, porosity and velocity; the pressure's assembly and sol
 forces back: seepage, drag coefficients, the DEM's external forces and the drag's set-up).
 The CPU model and the load from ``benchmarks/machine.py``.
 
-Run: ``python benchmarks/fluid_cost.py`` (serial; ~3 min on the 2-core VM);
+Run: ``python benchmarks/fluid_cost.py`` (serial; ~30 s on the 2-core VM);
 ``GRANFE_SHORT=1`` for a quick look.
 """
 
