@@ -2,8 +2,10 @@
 
 The macro problem is a :class:`~granfe.problem.ContinuumProblem` of the
 :class:`~granfe.models.quadrature_stress.QuadratureStress` model; every quadrature point of
-an owned cell holds a `dem.rve.RVE` (so the RVEs are distributed over the ranks with the
-cells that own them, and no RVE is ever copied between ranks). Localisation / homogenisation
+an owned cell has a `dem.rve.RVE`, at first on the rank owning the cell; after a load step
+RVEs move between ranks to even the ranks' work of the step (:mod:`coupling.fe2_placement`:
+a Newton iteration waits for the slowest rank), their strains sent to them and their
+stresses back at every iteration (a few numbers a point). Localisation / homogenisation
 (seed 004 eq. 19, 23): the macro strain of a point goes down to its RVE as a strain
 increment from the committed state, the relaxed Love-Weber stress comes back up.
 
@@ -347,6 +349,11 @@ class FE2:
         self.history[-1].append(float(fnorm))
         if not np.isfinite(fnorm):
             return PETSc.SNES.ConvergedReason.DIVERGED_FNORM_NAN
+        if it == 0:
+            # At least one Newton step: at iteration 0 the rows of moved Dirichlet values
+            # hold displacements (x - g), not forces, and where no free dof carries their
+            # lifting (one element, every node prescribed) they pass any force tolerance.
+            return PETSc.SNES.ConvergedReason.ITERATING
         if fnorm <= self.settings.force_tol * self._f_ref:
             return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
         if it >= self.settings.max_it:

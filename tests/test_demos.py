@@ -33,6 +33,7 @@ DEMOS = [
     ("demos/3d/micromorphic_plastic_triaxial.py", True),
     ("demos/3d/sheared_till.py", False),
     ("demos/3d/seed004_stress_paths.py", False),
+    ("demos/3d/fe2_triaxial.py", True),
 ]
 DEMOS += [(str(p.relative_to(ROOT)), True) for p in sorted((ROOT / "demos" / "1d").glob("*.py"))]
 

@@ -1,7 +1,7 @@
 """Two-scale FE x DEM (`coupling.fe2`): one element with one RVE equals the RVE driven
-directly; a homogeneous macro test (every RVE a clone of one) equals the single RVE under
-the same mixed control; a failed step restores every RVE; a checkpoint restores the run;
-serial == 2 ranks.
+directly (2D, and 3D: one tetrahedron); a homogeneous macro test (every RVE a clone of one)
+equals the single RVE under the same mixed control; a failed step restores every RVE; a
+checkpoint restores the run; serial == 2 ranks, also with the RVEs moved between ranks.
 
 RVEs of about 40 disks (2D, kn / p0 = 1e3 per unit thickness), consolidated once for the
 module; a 1e-3 strain step costs ~0.1 s each."""
@@ -9,6 +9,7 @@ module; a 1e-3 strain step costs ~0.1 s each."""
 import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
 
+import basix.ufl
 import numpy as np
 import pytest
 from dolfinx import mesh
@@ -200,3 +201,33 @@ def test_serial_equals_two_ranks(protos, tmp_path_factory):
         top.value = -1.5e-3 * H
         run.solve()
     np.testing.assert_array_equal(fresh.stress(), kept.stress())
+
+
+def test_one_tetrahedron_one_rve_in_3d():
+    """3D: one tetrahedron (one quadrature point), its four nodes moved with an affine field
+    u = E x (E with shears, two steps, secant tangent): the point's strain is E and its stress
+    the answer of the RVE driven directly to E, to round-off. RVE of ~30 spheres (seed 004's
+    grains), consolidated here to a rough isotropic state (1e-2: seconds; 1e-3 takes ~10^5
+    steps), then loaded with SOLVER's tolerances."""
+    rough = QuasiStatic(force_tol=1e-2, stress_tol=1e-2, ramp_steps=200, strain_rate=2e-6)
+    proto = RVE.consolidate(Grains(n=30, dim=3, seed=2, consolidation_friction=0.1), P0, rough)
+    proto.solver = SOLVER
+    tet = basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,))
+    dom = mesh.create_mesh(MPI.COMM_SELF, np.array([[0, 1, 2, 3]], np.int64), tet,
+                           np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float))
+    p = ContinuumProblem(dom, QuadratureStress(QuadratureStressMaterial()), quadrature_degree=1,
+                         solver="redundant", prefix="fe2_tet_")
+    E = np.array([[2e-5, 1e-5, 0.0], [1e-5, 3e-5, -2e-5], [0.0, -2e-5, -1e-4]])
+    holder = p.fix(lambda x: np.full(x.shape[1], True), "u", lambda x: 0.0 * x)
+    fe2 = FE2(p, [proto], settings=MacroNewton(tangent="secant"))
+    assert fe2.n == 1 and fe2.k == 6
+    ref = RVE(proto.sim, proto.solver)
+    proto.restore()
+    for f in (0.5, 1.0):
+        holder.interpolate(lambda x, f=f: f * (E @ x))
+        fe2.solve()
+        s_ref = to_mandel(ref.strain_step(0.5 * E), 3)
+        ref.commit()
+        np.testing.assert_allclose(fe2.strain()[0], f * to_mandel(E, 3), rtol=0, atol=1e-14)
+        assert np.abs(fe2.stress()[0] - s_ref).max() <= 1e-9 * P0
+    assert abs(np.trace(from_mandel(fe2.stress()[0], 3)) / 3 + P0) < 0.5 * P0  # still loaded
