@@ -275,7 +275,8 @@ class FE2:
 
     def _evaluate(self) -> bool:
         """Every point's RVE at the strain of the current fields (from its committed state,
-        on its worker); False if one (on any rank) did not relax. Collective."""
+        on its worker); False if one of this rank's points did not relax (`_residual`
+        reduces over the ranks). Collective."""
         self._strain_q.interpolate(self._strain_expr)
         self._E = self._strain_q.x.array[: self.n * self.k].reshape(self.n, self.k).copy()
         tasks = {int(g): self._E[i] - self._E_c[i] for i, g in enumerate(self.global_point)}
