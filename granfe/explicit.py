@@ -99,6 +99,7 @@ class CentralDifference:
         self.fallbacks = 0                       # GeneralizedAlpha's counter, never used here
         self.substeps = 0
         self._omega_max: float | None = None
+        self._weighted: dict = {}
         self._elastic = fem.form(model.stored_energy(problem.split(problem.w), problem.state.committed)
                                  * problem.dx, jit_options=jit)
 
@@ -240,12 +241,17 @@ class CentralDifference:
 
     def energies(self, weight=None) -> tuple[float, float]:
         """(kinetic, elastic) energy [J] (per unit thickness in 2D); the kinetic energy of the
-        lumped mass, the one the scheme moves (``v . M_L v / 2``)."""
+        lumped mass, the one the scheme moves (``v . M_L v / 2``). With ``weight`` (a UFL
+        expression, e.g. a region's indicator) both are the weighted integrals, the kinetic
+        one of the consistent mass."""
+        comm, p = self.problem.domain.comm, self.problem
         if weight is not None:
-            raise NotImplementedError("CentralDifference.energies: a weighted energy is not "
-                                      "implemented (GeneralizedAlpha has it)")
-        comm = self.problem.domain.comm
-        n = self.problem.V.dofmap.index_map.size_local * self.problem.V.dofmap.index_map_bs
+            key = id(weight)
+            if key not in self._weighted:
+                self._weighted[key] = tuple(fem.form(weight * e * p.dx, jit_options=p.jit_options) for e in (
+                    p.model.kinetic_energy(p.split(self.v)), p.model.stored_energy(p.split(p.w), p.state.committed)))
+            return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in self._weighted[key])
+        n = p.V.dofmap.index_map.size_local * p.V.dofmap.index_map_bs
         v = self.v.x.array[:n]
         kinetic = 0.5 * float(np.dot(self.mass[:n] * v, v))
         return (comm.allreduce(kinetic, MPI.SUM), comm.allreduce(fem.assemble_scalar(self._elastic), MPI.SUM))

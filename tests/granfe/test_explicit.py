@@ -10,6 +10,7 @@ from mpi4py import MPI
 
 import numpy as np
 import pytest
+import ufl
 from dolfinx import fem, mesh
 
 from granfe.dynamics import GeneralizedAlpha
@@ -277,3 +278,20 @@ def test_fused_kernel_is_the_ufl_return_and_residual(gdim, hardening):
     assert np.abs(r1 - r0).max() <= 1e-10 * np.abs(r0).max()
     for k in s0:
         assert np.abs(s1[k] - s0[k]).max() <= 1e-9 * max(np.abs(s0[k]).max(), 1e-12), k
+
+
+def test_weighted_energies_split_the_body():
+    """Energies weighted by a region's indicator and by its complement add up to the whole
+    weighted by one (the kinetic energy of the consistent mass there; the unweighted one is
+    the lumped mass's, the same stored energy)."""
+    p, _ = block(Micropolar(ELASTIC), prefix="energy_")
+    stepper = CentralDifference(p, 0.5 * CentralDifference(p, 1.0).critical_time_step)
+    free_vibration(stepper, 20)
+    x = ufl.SpatialCoordinate(p.domain)
+    left = ufl.conditional(x[0] < 0.1, 1.0, 0.0)
+    a, b = stepper.energies(left), stepper.energies(1 - left)
+    whole, lumped = stepper.energies(ufl.as_ufl(1.0)), stepper.energies()
+    assert a[0] + b[0] == pytest.approx(whole[0], rel=1e-10)
+    assert a[1] + b[1] == pytest.approx(whole[1], rel=1e-10)
+    assert whole[1] == pytest.approx(lumped[1], rel=1e-10)
+    assert 0 < a[0] < whole[0] and 0 < a[1] < whole[1]
