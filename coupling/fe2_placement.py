@@ -97,15 +97,6 @@ class Placement:
         """Adopt ``worker`` (the same on every rank); ``states``: ``{point: state}`` of the
         points held here, from which those leaving are sent to their new workers. Returns the
         states of the points arriving here. Collective."""
-        comm = self.comm
-        leaving = {g: s for g, s in states.items() if worker[g] != comm.rank}
+        leaving = {g: s for g, s in states.items() if worker[g] != self.comm.rank}
         self.worker = np.array(worker, np.int64)
-        if comm.size == 1:
-            return {}
-        out = [{} for _ in range(comm.size)]
-        for g, s in leaving.items():
-            out[int(worker[g])][g] = s
-        got = {}
-        for part in comm.alltoall(out):
-            got.update(part)
-        return got
+        return self._route(leaving, self.worker)
