@@ -22,7 +22,7 @@ from dolfinx import fem
 from granfe.problem import ContinuumProblem
 from granfe.solvers import ELASTIC_QUASI_NEWTON, REDUNDANT, fixed_jacobian, make_snes_problem
 
-__all__ = ["AlphaParameters", "GeneralizedAlpha"]
+__all__ = ["AlphaParameters", "EnergyForms", "GeneralizedAlpha"]
 
 
 @dataclass(frozen=True)
@@ -102,10 +102,7 @@ class GeneralizedAlpha:
         self._snes = self._newton_problem(options) if self._quasi is None else self._quasi.nlp
         self._affine = _AffineStep.build(self, F, L)
         self.fallbacks = 0
-        jit = problem.jit_options
-        self._kinetic = fem.form(model.kinetic_energy(problem.split(self.v)) * problem.dx, jit_options=jit)
-        self._elastic = fem.form(model.stored_energy(problem.split(w), state) * problem.dx, jit_options=jit)
-        self._weighted: dict = {}
+        self._energies = EnergyForms(problem, self.v)
 
     def _newton_problem(self, options: dict | None = None, prefix: str | None = None):
         """Newton on the consistent tangent (the problem's solver options over ``options``)."""
@@ -196,19 +193,34 @@ class GeneralizedAlpha:
     def energies(self, weight=None) -> tuple[float, float]:
         """(kinetic, elastic) energy [J] (per unit thickness in 2D), optionally weighted by a
         UFL expression ``weight`` (e.g. an indicator of a region)."""
+        return self._energies(weight)
+
+
+class EnergyForms:
+    """The kinetic and stored energy of a problem's model at velocities ``v`` (the model's
+    densities integrated), optionally weighted by a UFL expression; the forms compiled once
+    a weight (a time stepper's energies)."""
+
+    def __init__(self, problem: ContinuumProblem, v: fem.Function):
+        self.problem, self.v = problem, v
+        self._forms: dict = {}
+
+    def forms(self, weight=None) -> tuple:
+        # keyed by the weight's id, the weight kept with its forms: a weight built for one
+        # call (``1 - indicator``) would otherwise be freed and its id given to the next
+        key = None if weight is None else id(weight)
+        if key not in self._forms:
+            p = self.problem
+            densities = (p.model.kinetic_energy(p.split(self.v)),
+                         p.model.stored_energy(p.split(p.w), p.state.committed))
+            self._forms[key] = (weight, tuple(fem.form((e if weight is None else weight * e) * p.dx,
+                                                       jit_options=p.jit_options) for e in densities))
+        return self._forms[key][1]
+
+    def __call__(self, weight=None) -> tuple[float, float]:
+        """(kinetic, stored) energy [J] (per unit thickness in 2D). Collective."""
         comm = self.problem.domain.comm
-        if weight is None:
-            forms = (self._kinetic, self._elastic)
-        else:
-            key = id(weight)
-            if key not in self._weighted:
-                p = self.problem
-                self._weighted[key] = (
-                    fem.form(weight * p.model.kinetic_energy(p.split(self.v)) * p.dx, jit_options=p.jit_options),
-                    fem.form(weight * p.model.stored_energy(p.split(p.w), p.state.committed) * p.dx,
-                             jit_options=p.jit_options))
-            forms = self._weighted[key]
-        return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in forms)
+        return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in self.forms(weight))
 
 
 class _ElasticQuasiNewton:

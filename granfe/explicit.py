@@ -44,6 +44,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
+from granfe.dynamics import EnergyForms
 from granfe.problem import ContinuumProblem
 
 __all__ = ["CentralDifference", "POWER_TOL"]
@@ -90,7 +91,9 @@ class CentralDifference:
         ones.x.array[:] = 1.0
         mass = fem.form(problem.weighted(model.inertia_work(problem.split(ones), dw)) * problem.dx,
                         jit_options=jit)
-        self.mass = _assembled(mass)
+        lumped = fem.Function(V)
+        _assemble_into(lumped.x.petsc_vec, mass)
+        self.mass = lumped.x.array.copy()
         if self.mass.min() <= 0:
             raise ValueError("CentralDifference: a lumped mass is not positive (zero density or "
                              "partition weight somewhere?)")
@@ -99,9 +102,7 @@ class CentralDifference:
         self.fallbacks = 0                       # GeneralizedAlpha's counter, never used here
         self.substeps = 0
         self._omega_max: float | None = None
-        self._weighted: dict = {}
-        self._elastic = fem.form(model.stored_energy(problem.split(problem.w), problem.state.committed)
-                                 * problem.dx, jit_options=jit)
+        self._energies = EnergyForms(problem, self.v)
 
     # ---- the stability limit --------------------------------------------------------
     @property
@@ -184,8 +185,7 @@ class CentralDifference:
         self.w_old.x.array[:] = self.problem.w.x.array
         self._v0.x.array[:] = self.v.x.array
         self._a0.x.array[:] = self.a.x.array
-        state = self.problem.state
-        self._snapshot = {k: f.x.array.copy() for k, f in state.committed.items()} if state else {}
+        self._snapshot = self.problem.state.state_dict()
 
     def solve(self) -> int:
         """Advance from the step's start to its end; returns the substeps taken."""
@@ -204,7 +204,7 @@ class CentralDifference:
         w[:] = w0
         v[:] = self._v0.x.array
         a[:] = self._a0.x.array
-        self._restore_state()
+        problem.state.load_state(self._snapshot)
         self._forces.start()
         rate = (end[fixed] - w0[fixed]) / dt
         try:
@@ -221,7 +221,7 @@ class CentralDifference:
         except Exception:
             w[:] = w0
             problem.w.x.scatter_forward()
-            self._restore_state()
+            problem.state.load_state(self._snapshot)
             raise
         self._forces.finish()
         self.substeps = k
@@ -244,28 +244,19 @@ class CentralDifference:
         lumped mass, the one the scheme moves (``v . M_L v / 2``). With ``weight`` (a UFL
         expression, e.g. a region's indicator) both are the weighted integrals, the kinetic
         one of the consistent mass."""
-        comm, p = self.problem.domain.comm, self.problem
         if weight is not None:
-            key = id(weight)
-            if key not in self._weighted:
-                self._weighted[key] = tuple(fem.form(weight * e * p.dx, jit_options=p.jit_options) for e in (
-                    p.model.kinetic_energy(p.split(self.v)), p.model.stored_energy(p.split(p.w), p.state.committed)))
-            return tuple(comm.allreduce(fem.assemble_scalar(f), MPI.SUM) for f in self._weighted[key])
+            return self._energies(weight)
+        p = self.problem
         n = p.V.dofmap.index_map.size_local * p.V.dofmap.index_map_bs
         v = self.v.x.array[:n]
-        kinetic = 0.5 * float(np.dot(self.mass[:n] * v, v))
-        return (comm.allreduce(kinetic, MPI.SUM), comm.allreduce(fem.assemble_scalar(self._elastic), MPI.SUM))
+        stored = fem.assemble_scalar(self._energies.forms()[1])
+        comm = p.domain.comm
+        return (comm.allreduce(0.5 * float(np.dot(self.mass[:n] * v, v)), MPI.SUM), comm.allreduce(stored, MPI.SUM))
 
     # ---- internals ------------------------------------------------------------------
     def _fixed_dofs(self) -> np.ndarray:
         dofs = [bc.dof_indices()[0] for bc in self.problem.bcs]     # owned and ghost entries
         return np.unique(np.concatenate(dofs + [np.zeros(0, np.int32)]))
-
-    def _restore_state(self) -> None:
-        state = self.problem.state
-        for name, values in (self._snapshot or {}).items():
-            state.committed[name].x.array[:] = values
-            state.trial[name].x.array[:] = values
 
     def _accelerate(self, a: np.ndarray, fixed: np.ndarray | None = None, commit: bool = True) -> None:
         """``a = -M_L^-1 r(w)`` with r the residual (internal minus external forces), zero on
@@ -402,16 +393,3 @@ class _SimplexForces:
             n = len(b.array)
             b.array_w[:] -= self.load.x.array[:n]
         b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-
-
-def _assembled(form) -> np.ndarray:
-    """A vector form assembled, owned and ghost entries (the owners' sums)."""
-    from dolfinx.fem.petsc import assemble_vector
-
-    b = assemble_vector(form)
-    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-    b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-    with b.localForm() as loc:
-        out = loc.array.copy()
-    b.destroy()
-    return out

@@ -338,10 +338,11 @@ class MicropolarDruckerPrager(Micropolar):
 
     def simplex_forces(self, cells, w: np.ndarray, state: dict, new_state: dict, f: np.ndarray) -> None:
         """The internal forces on degree-1 simplices in one pass (kinematics, return, element
-        forces), added into ``f`` (local dofs): what :meth:`point_work` assembles after
-        :meth:`point_return`, without the quadrature functions between them. ``cells``: the
-        geometry of :class:`granfe.explicit.SimplexCells`; ``state`` / ``new_state`` as for
-        :meth:`point_return`, rows in the order of the cells' points."""
+        forces), added into ``f`` (local dofs): the residual of :meth:`internal_work` with
+        the return of :meth:`state_update` committed. ``cells``: the geometry of
+        :class:`granfe.explicit.SimplexCells`; ``state`` / ``new_state``: name -> the owned
+        points' values, one row a point in the order of the cells' points (``new_state`` may
+        be ``state``)."""
         nk = 2 if cells.gdim == 2 else 9
         P = cells.wdet.size
 
