@@ -24,6 +24,7 @@ import scipy.linalg
 from dolfinx import fem
 
 from coupling.locate import owner_ranks, relocate
+from coupling.micro_kinematics import MicroDeformationFit, axial_vector, micro_deformation
 from coupling.operators import FieldBasis, NodalProjection
 from coupling.regions import CouplingRegions
 
@@ -63,7 +64,7 @@ class _Field:
     sub: int
     ghost: FieldBasis
     free: FieldBasis
-    projection: NodalProjection
+    projection: NodalProjection | None   # None: a micro-deformation, fitted (self.micro)
     prescribed: np.ndarray  # owned local parent dofs
 
 
@@ -83,10 +84,17 @@ class CouplingInterface(DistributedVectors):
             (the diagonal of M) is below this fraction of the median: such nodes (a free
             surface, a cavity) would make the projection ill-conditioned and amplify noise;
             they stay FE dofs.
+        micro_fit: options of :class:`coupling.micro_kinematics.MicroDeformationFit`
+            (``min_grains``, ``min_spread``) for a micromorphic model.
+
+    A micromorphic model (``phi = chi - I`` of shape (gdim, gdim), :func:`coupling.
+    micro_kinematics.micro_deformation`) has its prescribed phi fitted to the free grains'
+    displacements (:attr:`micro`, no projection of their spins) and gives its ghosts the
+    rotation ``axial(skew(phi))``; a micropolar one projects and returns its rotation phi.
     """
 
     def __init__(self, problem, x, kinds, regions: CouplingRegions, regularization: float = 0.0,
-                 min_support: float = 0.0):
+                 min_support: float = 0.0, micro_fit: dict | None = None):
         self.problem = problem
         V, domain = problem.V, problem.domain
         super().__init__(domain.comm)
@@ -103,6 +111,8 @@ class CouplingInterface(DistributedVectors):
         self._locate(self.x)
         self.g = fem.Function(V, name="prescribed_values")
         bc_dofs, self.fields = [], []
+        self.micro = None   # the micro-deformation fit of a micromorphic model's phi
+        fitted = self.coupled_fields(problem)[1] if micro_deformation(problem) else -1
         for sub in self.coupled_fields(problem):
             ghost = FieldBasis.build(V, self._ghost_points(self.x), sub=sub)
             free = FieldBasis.build(V, self._free_points(self.x), sub=sub)
@@ -114,7 +124,11 @@ class CouplingInterface(DistributedVectors):
             if min_support > 0:
                 local = self._supported(V, free, local, min_support)
             owned = local[local < V.dofmap.index_map.size_local * V.dofmap.index_map_bs]
-            projection = NodalProjection(free, owned, regularization)
+            if sub == fitted:
+                projection = None
+                self.micro = MicroDeformationFit(free, self._free_points(self.x), owned, **(micro_fit or {}))
+            else:
+                projection = NodalProjection(free, owned, regularization)
             self.fields.append(_Field(sub, ghost, free, projection, np.sort(owned)))
             bc_dofs.append(local)
         self.regularization = regularization
@@ -205,13 +219,17 @@ class CouplingInterface(DistributedVectors):
             for f in self.fields:
                 f.ghost = FieldBasis.build(self.problem.V, self._ghost_points(x), sub=f.sub)
                 f.free = FieldBasis.build(self.problem.V, self._free_points(x), sub=f.sub)
-                f.projection = NodalProjection(f.free, f.prescribed, self.regularization)
+                if f.projection is not None:
+                    f.projection = NodalProjection(f.free, f.prescribed, self.regularization)
         else:
             for f in self.fields:
                 n_ghost = f.ghost.update(self._ghost_points(x), located[0])
                 n_free = f.free.update(self._free_points(x), located[1])
-                counts["pattern_rebuilt"] |= f.projection.update()
+                if f.projection is not None:
+                    counts["pattern_rebuilt"] |= f.projection.update()
             counts["changed_cell"] = n_ghost + n_free
+        if self.micro is not None:
+            self.micro.update(self.fields[1].free, self._free_points(x))
         self.x = x.copy()
         self.update_counts["updates"] += 1
         for key in ("changed_cell", "changed_rank"):
@@ -238,18 +256,36 @@ class CouplingInterface(DistributedVectors):
         return candidates[mask.array[candidates] > 0.5]
 
     def ghost_motion(self, w: fem.Function | None = None):
-        """(u_ghost (n_g, dim), theta_ghost (n_g,) or (n_g, 3)) on every rank: ``Q^ = N D``."""
+        """(u_ghost (n_g, dim), theta_ghost (n_g,) or (n_g, 3)) on every rank: ``Q^ = N D``;
+        a micromorphic model's theta is the axial vector of skew(phi) at the ghosts (a rigid
+        grain carries only the rotation part of its micro-element's motion,
+        :func:`coupling.micro_kinematics.axial_vector`)."""
         w = self.problem.w if w is None else w
         u, theta = (gather_rows(self.comm, f.ghost.interpolate(w), self._ghost_mine, len(self.ghost_index))
                     for f in self.fields)
+        if self.micro is not None:
+            return u, axial_vector(theta, self.gdim)
         return u, (theta[:, 0] if self.gdim == 2 else theta)
 
     def project(self, u: np.ndarray, theta: np.ndarray) -> np.ndarray:
-        """Prescribed-dof values (this rank's, u then phi) from all particles' motion."""
+        """Prescribed-dof values (this rank's, u then phi) from all particles' motion (a
+        micromorphic phi: fitted to the displacements u, theta unused)."""
         w = self.problem.w
+        if self.micro is not None:
+            return np.concatenate([self.project_displacement(u), self.project_micro_deformation(u)])
         th = np.reshape(theta, (len(theta), -1))
         return np.concatenate([f.projection.project(q[self._free_mine], w)
                                for f, q in zip(self.fields, (u[:, : self.gdim], th), strict=False)])
+
+    def project_micro_deformation(self, u: np.ndarray) -> np.ndarray:
+        """A micromorphic model's prescribed phi dofs (this rank's, in the order of
+        ``fields[1].prescribed``): the least-squares fit of the free grains' displacements
+        ``u`` (n, >= dim) of all particles about each node (:class:`coupling.micro_kinematics.
+        MicroDeformationFit`). Collective."""
+        if self.micro is None:
+            raise ValueError(f"the {self.problem.model.name} model's phi is a rotation, not a "
+                             "micro-deformation: nothing to fit")
+        return self.micro.fit(np.asarray(u)[self._free_mine, : self.gdim])
 
     def project_displacement(self, u: np.ndarray) -> np.ndarray:
         """The displacement part of :meth:`project` (this rank's prescribed u dofs) alone, for

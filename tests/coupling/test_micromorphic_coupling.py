@@ -1,0 +1,237 @@
+"""A micromorphic continuum coupled to grains (`coupling.micro_kinematics`, the micromorphic
+branch of `coupling.interface.CouplingInterface`).
+
+Tolerances: 1e-10 where the fit is exact (an affine displacement field; the same fit by an
+independent dense least-squares solve per node); 1e-13 for the serial == 2 ranks check.
+"""
+
+import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
+
+import dolfinx
+import numpy as np
+import pytest
+from dolfinx import fem, mesh
+
+from coupling.interface import CouplingInterface
+from coupling.locate import owner_ranks
+from coupling.micro_kinematics import MicroDeformationFit, ThinSupport, axial_vector, micro_deformation
+from coupling.operators import FieldBasis
+from coupling.regions import Box, CouplingRegions
+from granfe.materials import MicropolarMaterial
+from granfe.models.micromorphic import Micromorphic, MicromorphicMaterial
+from granfe.models.micropolar import Micropolar
+from granfe.problem import ContinuumProblem
+
+
+def material():
+    return MicromorphicMaterial.micropolar_limit(2e6, 1e6, 3e5, 10.0, penalty=1e6)
+
+
+def problem(comm, dim, n=4, degree=(1, 1)):
+    if dim == 2:
+        msh = mesh.create_unit_square(comm, n, n)
+    else:
+        msh = mesh.create_unit_cube(comm, n, n, n)
+    return ContinuumProblem(msh, Micromorphic(material()), degree=degree)
+
+
+def grains(dim, n, seed=3):
+    """Grains clustered toward the origin (x = U^2): not uniform in any node's support."""
+    rng = np.random.default_rng(seed)
+    return rng.uniform(0.0, 1.0, size=(n, dim)) ** 2 * 0.999 + 5e-4
+
+
+def phi_dofs(V, sub=1):
+    """Owned local parent dofs of phi, their component k (= gdim i + j) and node coordinates."""
+    Vc, parent = V.sub(sub).collapse()
+    parent = np.asarray(parent[0] if isinstance(parent, list) else parent, dtype=np.int64).ravel()
+    bs = Vc.dofmap.bs
+    n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+    coords = np.repeat(Vc.tabulate_dof_coordinates(), bs, axis=0)
+    comp = np.tile(np.arange(bs), len(parent) // bs)
+    owned = parent < n_owned
+    return parent[owned], comp[owned], coords[owned]
+
+
+def my_grains(V, x):
+    mine = np.flatnonzero(owner_ranks(V.mesh, x) == V.mesh.comm.rank)
+    return x[mine], mine
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_fit_recovers_an_affine_field_exactly(dim):
+    """u = u0 + H x for grains anywhere in each node's support gives phi_a = H at every node."""
+    p = problem(MPI.COMM_SELF, dim, n=3)
+    x = grains(dim, 900 if dim == 2 else 4000)
+    dofs, comp, _ = phi_dofs(p.V)
+    basis = FieldBasis.build(p.V, x, sub=1)
+    fit = MicroDeformationFit(basis, x, dofs)
+    rng = np.random.default_rng(5)
+    H, u0 = rng.normal(size=(dim, dim)), rng.normal(size=dim)
+    phi = fit.fit(u0 + x @ H.T)
+    order = np.argsort(dofs)   # the fit returns the prescribed dofs sorted
+    expected = H.ravel()[comp[order]]
+    assert np.max(np.abs(phi - expected)) < 1e-10 * np.abs(H).max()
+    # and not for a field that is not affine: the fit is a real fit, not a copy of H
+    curved = fit.fit(u0 + x @ H.T + 0.3 * x**2)
+    assert np.max(np.abs(curved - expected)) > 1e-2
+
+
+def test_fit_equals_an_independent_weighted_least_squares_per_node():
+    """A non-affine field: phi_a = the dense weighted least-squares solve over the node's
+    grains (weights by Function.eval of the node's hat function), intercept fitted too."""
+    p = problem(MPI.COMM_SELF, 2, n=3)
+    x = grains(2, 700, seed=8)
+    dofs, comp, coords = phi_dofs(p.V)
+    fit = MicroDeformationFit(FieldBasis.build(p.V, x, sub=1), x, dofs)
+    u = np.c_[np.sin(3 * x[:, 0]) * x[:, 1], np.cos(2 * x[:, 1]) + x[:, 0] ** 3]
+    phi = fit.fit(u)
+    Q = fem.functionspace(p.domain, ("Lagrange", 1))
+    tree = dolfinx.geometry.bb_tree(p.domain, 2)
+    x3 = np.c_[x, np.zeros(len(x))]
+    cells = dolfinx.geometry.compute_colliding_cells(p.domain, dolfinx.geometry.compute_collisions_points(tree, x3), x3)
+    cell_of = np.array([cells.links(i)[0] for i in range(len(x))], dtype=np.int32)
+    order = np.argsort(dofs)
+    qx = Q.tabulate_dof_coordinates()[:, :2]
+    for node in (0, 5, 11):
+        at = coords[order][4 * node, :2]   # 4 components a node (2D)
+        hat = fem.Function(Q)
+        hat.x.array[np.flatnonzero(np.linalg.norm(qx - at, axis=1) < 1e-12)] = 1.0
+        w = hat.eval(x3, cell_of).ravel()
+        sel = w > 1e-14
+        A = np.c_[np.ones(sel.sum()), x[sel] - at] * np.sqrt(w[sel])[:, None]
+        coef = np.linalg.lstsq(A, u[sel] * np.sqrt(w[sel])[:, None], rcond=None)[0]
+        H = coef[1:].T   # u_i = c_i + H_ij (x_j - x_a)
+        got = phi[order.argsort()][np.flatnonzero(np.all(np.abs(coords[:, :2] - at) < 1e-12, axis=1))]
+        assert np.allclose(np.sort(got), np.sort(H.ravel()), rtol=0, atol=1e-11)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("dim", [2, 3])
+def test_ghost_rotation_of_a_skew_phi_is_the_rigid_rotation(dim):
+    """A rigid rotation u = W x, phi = W of the continuum gives the ghosts u = W x_g and the
+    rotation theta with W v = theta x v, through the interface's field layout."""
+    p = problem(MPI.COMM_WORLD, dim, n=3)
+    theta = np.array([0.3]) if dim == 2 else np.array([0.2, -0.5, 0.7])
+    t = theta if dim == 3 else (0.0, 0.0, theta[0])
+    W = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])[:dim, :dim]
+    if dim == 3:
+        v = np.array([0.3, -1.2, 0.4])
+        assert np.allclose(W @ v, np.cross(theta, v))
+    assert np.allclose(axial_vector(W.reshape(1, -1), dim), theta)
+    assert np.allclose(axial_vector(np.eye(dim).reshape(1, -1), dim), 0.0)   # a stretch: no rotation
+    x = np.c_[grains(dim, 600 if dim == 2 else 2500), np.zeros((600 if dim == 2 else 2500, 3 - dim))]
+    kinds = (np.abs(x[:, :dim] - 0.5).max(axis=1) > 0.3).astype(np.int8)
+    regions = CouplingRegions(Box((0.2,) * dim, (0.8,) * dim), ghost_width=0.5, handshake=0.0)
+    iface = CouplingInterface(p, x, kinds, regions)
+    p.w.sub(0).interpolate(lambda y: W @ y[:dim])
+    p.w.sub(1).interpolate(lambda y: np.tile(W.reshape(-1, 1), y.shape[1]))
+    p.w.x.scatter_forward()
+    u_g, th_g = iface.ghost_motion()
+    xg = x[kinds == 1, :dim]
+    assert np.max(np.abs(u_g - xg @ W.T)) < 1e-13
+    assert np.max(np.abs(th_g - (theta[0] if dim == 2 else theta))) < 1e-13
+
+
+@pytest.mark.mpi
+def test_coupled_micromorphic_interface_prescribes_the_fit():
+    """The interface builds on a micromorphic problem: its prescribed phi are the fit of the
+    free grains' displacements (no projection of their spins), u the L2 projection as for the
+    micropolar continuum; an affine motion puts H on every prescribed node."""
+    p = problem(MPI.COMM_WORLD, 2, n=6)
+    assert micro_deformation(p)
+    x = np.c_[np.random.default_rng(4).uniform(0, 1, (3000, 2)), np.zeros(3000)]
+    regions = CouplingRegions(Box((0.1, 0.1), (0.9, 0.9)), ghost_width=0.1, handshake=0.1)
+    kinds = regions.particle_kinds(x[:, :2])
+    x, kinds = x[kinds >= 0], kinds[kinds >= 0]
+    iface = CouplingInterface(p, x, kinds, regions)
+    f_u, f_phi = iface.fields
+    assert f_phi.projection is None and iface.micro is not None and f_phi.prescribed.size > 0
+    rng = np.random.default_rng(2)
+    H = rng.normal(size=(2, 2)) * 1e-3
+    u = np.c_[x[:, :2] @ H.T + 1e-4, np.zeros(len(x))]
+    theta = rng.normal(size=len(x))   # spins: ignored by a micro-deformation
+    p.w.sub(0).interpolate(lambda y: H @ y[:2] + 1e-4)   # the free FE dofs hold the same field
+    p.w.x.scatter_forward()
+    values = iface.project(u, theta)
+    n_u = f_u.prescribed.size
+    assert np.array_equal(values[:n_u], iface.project_displacement(u))
+    assert np.array_equal(values[n_u:], iface.project_micro_deformation(u))
+    dofs, comp, _ = phi_dofs(p.V)
+    order = np.argsort(dofs)
+    k = comp[order][np.searchsorted(dofs[order], f_phi.prescribed)]
+    assert np.max(np.abs(values[n_u:] - H.ravel()[k])) < 1e-12
+    # the affine u is in the FE space: its projection reproduces it at the nodes
+    assert np.max(np.abs(values[:n_u] - p.w.x.array[f_u.prescribed])) < 1e-12 * np.abs(H).max()
+    # set into g, the Dirichlet values the FE solve will hold
+    iface.set_prescribed(values)
+    assert np.array_equal(iface.prescribed_values(), values)
+
+
+def test_micropolar_interface_is_unchanged():
+    """A micropolar model keeps its projected rotation: no fit, theta as its phi."""
+    msh = mesh.create_unit_square(MPI.COMM_SELF, 4, 4)
+    p = ContinuumProblem(msh, Micropolar(MicropolarMaterial(lam=2e6, mu=1e6, kappa=3e5, gamma=10.0)),
+                         degree=(1, 1))
+    assert not micro_deformation(p)
+    x = np.c_[np.random.default_rng(1).uniform(0, 1, (800, 2)), np.zeros(800)]
+    regions = CouplingRegions(Box((0.1, 0.1), (0.9, 0.9)), ghost_width=0.1, handshake=0.1)
+    kinds = regions.particle_kinds(x[:, :2])
+    iface = CouplingInterface(p, x[kinds >= 0], kinds[kinds >= 0], regions)
+    assert iface.micro is None and iface.fields[1].projection is not None
+    with pytest.raises(ValueError, match="micropolar model's phi is a rotation"):
+        iface.project_micro_deformation(np.zeros((int((kinds >= 0).sum()), 3)))
+
+
+def test_bad_inputs_are_named():
+    p = problem(MPI.COMM_SELF, 2, n=4)
+    dofs, _, coords = phi_dofs(p.V)
+    # a support too thin: 40 grains over 25 nodes leave some nodes with fewer than 6
+    x = grains(2, 40)
+    basis = FieldBasis.build(p.V, x, sub=1)
+    with pytest.raises(ThinSupport, match=r"^\d+ of 25 prescribed node\(s\) have too thin a support"):
+        MicroDeformationFit(basis, x, dofs)
+    # grains on a line: a flat second moment, refused by its spread however many they are
+    t = np.linspace(0.01, 0.99, 400)
+    line = np.c_[t, 0.37 + 0 * t]
+    inner = dofs[np.abs(coords[:, 1] - 0.25) < 1e-12]
+    with pytest.raises(ThinSupport, match="spread"):
+        MicroDeformationFit(FieldBasis.build(p.V, line, sub=1), line, inner)
+    dense = grains(2, 2000)
+    basis = FieldBasis.build(p.V, dense, sub=1)
+    with pytest.raises(ValueError, match="min_grains must be an integer >= gdim \\+ 1 = 3"):
+        MicroDeformationFit(basis, dense, dofs, min_grains=2)
+    with pytest.raises(ValueError, match="min_spread"):
+        MicroDeformationFit(basis, dense, dofs, min_spread=0.0)
+    u_basis = FieldBasis.build(p.V, dense, sub=0)
+    with pytest.raises(ValueError, match="2 components per grain: not a"):
+        MicroDeformationFit(u_basis, dense, dofs)
+    p2 = problem(MPI.COMM_SELF, 2, n=2, degree=(2, 2))
+    with pytest.raises(ValueError, match="phi of degree 1, got degree 2"):
+        MicroDeformationFit(FieldBasis.build(p2.V, dense, sub=1), dense, phi_dofs(p2.V)[0])
+
+
+@pytest.mark.mpi
+def test_fit_on_two_ranks_equals_serial():
+    """The same grains and field: the fit on the ranks' split mesh equals the serial one at
+    every node (grains of a node's support on both ranks are summed into its owner)."""
+    comm = MPI.COMM_WORLD
+    x = grains(3, 3000, seed=9)
+    u = np.c_[np.sin(3 * x[:, 0]) * x[:, 1], np.cos(2 * x[:, 1]) + x[:, 2] ** 2, x[:, 0] * x[:, 2]]
+    results = []
+    for c in (MPI.COMM_SELF, comm):
+        p = problem(c, 3, n=3)
+        dofs, comp, coords = phi_dofs(p.V)
+        mine_x, mine = my_grains(p.V, x)
+        fit = MicroDeformationFit(FieldBasis.build(p.V, mine_x, sub=1), mine_x, dofs)
+        phi = fit.fit(u[mine])
+        order = np.argsort(dofs)
+        key = [(tuple(np.round(cc, 9)), int(k)) for cc, k in zip(coords[order], comp[order], strict=True)]
+        results.append(dict(zip(key, phi, strict=True)))
+    serial, split = results
+    gathered = {}
+    for part in comm.allgather(split):
+        gathered.update(part)
+    assert gathered.keys() == serial.keys()
+    assert max(abs(gathered[k] - serial[k]) for k in serial) < 1e-13
