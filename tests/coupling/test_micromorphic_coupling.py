@@ -235,3 +235,128 @@ def test_fit_on_two_ranks_equals_serial():
         gathered.update(part)
     assert gathered.keys() == serial.keys()
     assert max(abs(gathered[k] - serial[k]) for k in serial) < 1e-13
+
+
+# ---- the penetration scenes' micromorphic continuum --------------------------------------
+
+def test_penetration_micromorphic_material_is_the_grains_micropolar_estimate():
+    """W of the derived 18 moduli = lam/2 tr(eps)^2 + G |eps|^2 + b/2 |sym g|^2 + kappa/2 |skew g|^2
+    + gamma/4 |grad phi|^2 with g = grad u - phi, G = mu + kappa / 2, b = micro_stiffness G; a
+    skew phi (a rotation) has the micropolar energy."""
+    from types import SimpleNamespace
+
+    from coupling.apps.penetration.coupled import CoupledPenetration
+    from coupling.apps.penetration.parameters import PenetrationParameters
+    from granfe.models.micromorphic import micromorphic_energy
+
+    mp = MicropolarMaterial(lam=3e6, mu=2e6, kappa=5e5, gamma=7.0, rho=1600.0, j=1e-6)
+    mm = CoupledPenetration._micromorphic_material(
+        SimpleNamespace(material_fe=mp, prm=PenetrationParameters(continuum_micro_stiffness=0.7)))
+    assert mm.rho == mp.rho and mm.micro_inertia == mp.j / 2
+    rng = np.random.default_rng(0)
+    G, b = mp.mu + mp.kappa / 2, 0.7 * (mp.mu + mp.kappa / 2)
+    for d in (2, 3):
+        gu, phi, gphi = rng.normal(size=(d, d)), rng.normal(size=(d, d)), rng.normal(size=(d, d, d))
+        eps, g = (gu + gu.T) / 2, gu - phi
+        W = (mp.lam / 2 * np.trace(eps) ** 2 + G * np.sum(eps**2) + b / 2 * np.sum(((g + g.T) / 2) ** 2)
+             + mp.kappa / 2 * np.sum(((g - g.T) / 2) ** 2) + mp.gamma / 4 * np.sum(gphi**2))
+        assert micromorphic_energy(gu, np.eye(d) + phi, gphi, mm) == pytest.approx(W, rel=1e-13)
+    # a rotation phi = W(theta): the micropolar energy (3D), kappa |r - theta|^2 + gamma/2 |grad theta|^2
+    gu, theta, gtheta = rng.normal(size=(3, 3)), rng.normal(size=3), rng.normal(size=(3, 3))
+    def spin(t):   # spin(t) v = t x v
+        return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+    skew = spin(theta)
+    gskew = np.stack([spin(gtheta[:, k]) for k in range(3)], axis=-1)   # gtheta[i, k] = theta_i,k
+    eps = (gu + gu.T) / 2
+    r = 0.5 * np.array([gu[2, 1] - gu[1, 2], gu[0, 2] - gu[2, 0], gu[1, 0] - gu[0, 1]])
+    W_mp = (mp.lam / 2 * np.trace(eps) ** 2 + G * np.sum(eps**2) + b / 2 * np.sum(eps**2)
+            + mp.kappa * np.sum((r - theta) ** 2) + mp.gamma / 2 * np.sum(gtheta**2))
+    assert np.allclose(skew @ np.array([0.3, -1.0, 2.0]), np.cross(theta, [0.3, -1.0, 2.0]))
+    assert micromorphic_energy(gu, np.eye(3) + skew, gskew, mm) == pytest.approx(W_mp, rel=1e-13)
+
+
+def test_penetration_scene_selects_the_micromorphic_continuum_and_names_bad_keys():
+    from coupling.scene import SceneError
+    from coupling.scene import load_scene as load
+
+    def load_scene(path, tables):
+        return load(path, {"scene": {"kind": "penetration", "name": "mm"}} | tables)
+
+    scene = load_scene(None, {"continuum": {"model": "micromorphic", "micro_stiffness": 2.0}})
+    prm = scene.parameters()
+    assert prm.continuum == "micromorphic" and prm.continuum_micro_stiffness == 2.0
+    with pytest.raises(SceneError, match=r"continuum\.micro_stiffness .*must be > 0, got 0"):
+        load_scene(None, {"continuum": {"model": "micromorphic", "micro_stiffness": 0.0}})
+    with pytest.raises(SceneError, match=r"coupling\.interface = 'iqn-ils'.*need coupling\.interface = 'loose'"):
+        load_scene(None, {"continuum": {"model": "micromorphic"}, "coupling": {"interface": "iqn-ils"}})
+    with pytest.raises(SceneError, match=r"continuum\.integrator = 'explicit'"):
+        load_scene(None, {"continuum": {"model": "micromorphic", "integrator": "explicit"}})
+    with pytest.raises(SceneError, match=r"continuum\.model must be 'micropolar', 'micropolar_drucker_prager' or "
+                                         r"'micromorphic', got 'micromorphi'"):
+        load_scene(None, {"continuum": {"model": "micromorphi"}})
+
+
+# a few hundred spheres, a coarse mesh (tests/coupling/test_penetration.py's TINY) under a
+# micromorphic continuum
+TINY = dict(dim=3, chamber_width=0.14, chamber_depth=0.08, window_half_width=0.02, window_depth=0.04,
+            ghost_width=1.5, handshake=1.0, radius=3e-3, cone_radius=0.008, depth=0.006,
+            velocity=0.8, element_size_window=0.01, element_size_far=0.05, settle_time=0.04,
+            substeps=20, continuum="micromorphic")
+
+
+@pytest.fixture(scope="module")
+def coupled_pile(tmp_path_factory):
+    from coupling.apps.penetration.coupled import CoupledPenetration, PenetrationParameters
+
+    comm = MPI.COMM_WORLD
+    prm = PenetrationParameters(**TINY, shape="pile")
+    cpt = CoupledPenetration(prm, comm, log=lambda m: None)
+    w_geo = cpt.problem.w.x.array.copy()
+    where = comm.bcast(str(tmp_path_factory.mktemp("ckpt")) if comm.rank == 0 else None, root=0)
+    cpt.run(steps=1)
+    iface = cpt.interface
+    n_u = iface.fields[0].prescribed.size
+    first = {"prescribed": iface.prescribed_values()[n_u:].copy(),
+             "fit": iface.project_micro_deformation(cpt._grain_displacement(geostatic=False))}
+    cpt.run(steps=2)
+    cpt.save_checkpoint(where)
+    cpt.run()
+    return prm, cpt, w_geo, where, first
+
+
+@pytest.mark.mpi
+def test_coupled_micromorphic_pile_prescribes_the_fit_and_restarts_to_the_bit(coupled_pile):
+    """A coupled micromorphic pile (3D, geostatic start): the first step's prescribed phi is the
+    geostatic phi plus the relaxed fit of the grains' displacements; the geostatic state is
+    the micropolar one's uniaxial compression (lam, G the grains'); a restart from step 3
+    repeats the run to the bit."""
+    from coupling.apps.penetration.coupled import CoupledPenetration
+
+    prm, cpt, w_geo, where, first = coupled_pile
+    assert cpt.interface.micro is not None and cpt.problem.model.name == "micromorphic"
+    expected = cpt._phi_ref + prm.relaxation * first["fit"]
+    scale = cpt.comm.allreduce(np.abs(first["fit"]).max(initial=0.0), MPI.MAX)
+    assert scale > 0
+    assert cpt.comm.allreduce(np.abs(first["prescribed"] - expected).max(initial=0.0), MPI.MAX) < 1e-12 * scale
+    # the geostatic u: the closed form of tests/coupling/test_penetration.py (1D compression)
+    V = cpt.problem.V
+    Vu, parent = V.sub(0).collapse()
+    x = Vu.tabulate_dof_coordinates()
+    n_owned = Vu.dofmap.index_map.size_local
+    u = w_geo[np.asarray(parent)].reshape(-1, 3)[:n_owned]
+    z, s, zb = x[:n_owned, 2], cpt.surface, cpt.surface - prm.chamber_depth
+    m = cpt.material_fe
+    exact = -(m.rho * prm.gravity / (m.lam + 2 * m.mu + m.kappa)) * (s * (z - zb) - (z**2 - zb**2) / 2)
+    top = cpt.comm.allreduce(np.abs(exact).max(initial=0.0), MPI.MAX)
+    # physics tolerance: 6.4 % measured on this coarse mesh (the micropolar continuum: 2 %): a
+    # degree-1 phi cannot equal the cellwise-constant grad u of a degree-1 u, and the b-term
+    # that ties them stiffens the coarse far field
+    assert cpt.comm.allreduce(np.abs(u[:, 2] - exact).max(initial=0.0), MPI.MAX) < 0.1 * top
+    # restart
+    again = CoupledPenetration(prm, cpt.comm, log=lambda m: None, checkpoint=where)
+    assert len(again.history) == 3
+    again.run()
+    assert [h["q_c"] for h in again.history] == [h["q_c"] for h in cpt.history]
+    assert np.array_equal(again.problem.w.x.array, cpt.problem.w.x.array)
+    assert np.array_equal(again.sim.p.x, cpt.sim.p.x)

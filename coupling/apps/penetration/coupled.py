@@ -516,6 +516,9 @@ class CoupledPenetration:
         self._g_ref, self._q_ref = None, None
         if dim == 3 and prm.vertical_stress == 0:
             self._hold_geostatic_state()
+        # a micromorphic phi is prescribed as this (the geostatic state's) plus the grains' fit
+        self._phi_ref = self.interface.prescribed_values()[self.interface.fields[0].prescribed.size:] \
+            if getattr(self.interface, "micro", None) is not None else None
         self.dt_fe = prm.substeps * self.sim.dt
         self.stepper = (CentralDifference(self.problem, self.dt_fe) if prm.continuum_integrator == "explicit"
                         else GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=0.8))
@@ -570,6 +573,10 @@ class CoupledPenetration:
         prm = self.prm
         if prm.continuum == "micropolar":
             return Micropolar(self.material_fe)
+        if prm.continuum == "micromorphic":
+            from granfe.models.micromorphic import Micromorphic
+
+            return Micromorphic(self._micromorphic_material())
         from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
 
         elastic = replace(self.material_fe, alpha=0.0, beta=0.0)
@@ -585,6 +592,31 @@ class CoupledPenetration:
                                     match="plane_strain" if prm.dim == 2 else "triaxial_compression",
                                     initial_stress=(s0[0], s0[1], s0[0]) if prm.dim == 2 else s0)
         return MicropolarDruckerPrager(mat)
+
+    def _micromorphic_material(self):
+        """The packing's micropolar constants (lam, mu, kappa, gamma; alpha = beta = 0) as a
+        micromorphic solid (Eringen's relative deformation ``g = grad u - phi``, ``G = mu +
+        kappa / 2``, ``b = prm.continuum_micro_stiffness G``)::
+
+            W = lam/2 tr(eps)^2 + G |eps|^2 + b/2 |sym g|^2 + kappa/2 |skew g|^2 + gamma/4 |grad phi|^2
+
+        In the 18 moduli (``eps:A:eps/2 + E:B:E/2 + G:C:G/2 + eps:D:E``, ``E = 2 eps - g``):
+        mu' = G + 2 b, sigma = -b, kappa' = (kappa - b) / 2, nu = -(kappa + b) / 2, eta = tau = 0,
+        tau7 = gamma / 2 and the other taus 0; Smith's conditions hold for b, kappa, gamma > 0
+        and 3 lam + 2 G > 0. Its homogeneous states have g = 0 (phi = grad u, micro follows
+        macro, the grains' fit), so lam and G are the grains' and the geostatic K0 the
+        micropolar one's; a skew phi (a rotation) has the micropolar energy, and b -> inf is
+        the micropolar solid. Micro-inertia j / 2 (the micropolar rotary inertia j)."""
+        from granfe.models.micromorphic import MicromorphicMaterial
+
+        m = self.material_fe
+        g = m.mu + m.kappa / 2
+        b = self.prm.continuum_micro_stiffness * g
+        zero = dict.fromkeys(("tau1", "tau2", "tau3", "tau4", "tau5", "tau6", "tau8", "tau9", "tau10",
+                              "tau11"), 0.0)
+        return MicromorphicMaterial(lam=m.lam, mu=g + 2 * b, eta=0.0, tau=0.0, kappa=(m.kappa - b) / 2,
+                                    nu=-(m.kappa + b) / 2, sigma=-b, tau7=m.gamma / 2, **zero,
+                                    rho=m.rho, micro_inertia=m.j / 2)
 
     def _initial_stress(self) -> tuple[float, ...]:
         """The consolidated window's mean stress, measured once (or read from a checkpoint)."""
@@ -834,13 +866,14 @@ class CoupledPenetration:
             return self._forces_step()
         return self._converged_step()
 
-    def _grain_displacement(self) -> np.ndarray:
+    def _grain_displacement(self, geostatic: bool = True) -> np.ndarray:
         """The free and ghost grains' displacements (n, dim) the projection reads (collective
-        when the grains are distributed)."""
+        when the grains are distributed); ``geostatic``: with the geostatic state's (3D free
+        surface), else from the settled packing alone."""
         dim, n = self.prm.dim, self.n_grains
         x = self.sim.values_of(np.arange(n), "x") if self.distributed else self.sim.p.x[:n]
         u = x[:, :dim] - self.x_ref[:, :dim]
-        return u if self._q_ref is None else u + self._q_ref[:, :dim]
+        return u if self._q_ref is None or not geostatic else u + self._q_ref[:, :dim]
 
     def _cone_force(self) -> np.ndarray:
         """(k, 3) [N]: the grains' forces on the clump's spheres (its own contacts taken out)."""
@@ -928,6 +961,8 @@ class CoupledPenetration:
             old = iface.prescribed_values()
             D = old.copy()
             D[:n_u] = iface.project_displacement(self._grain_displacement())
+            if self._phi_ref is not None:   # a micromorphic phi: the grains' fitted micro-deformation
+                D[n_u:] = self._phi_ref + iface.project_micro_deformation(self._grain_displacement(geostatic=False))
             iface.set_prescribed(old + self.prm.relaxation * (D - old))
             return {}
 

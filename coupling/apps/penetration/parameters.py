@@ -114,6 +114,13 @@ class PenetrationParameters:
     # differences on a lumped mass, the FE step split into substeps below the measured
     # stability limit; a plastic step is one fused return and force pass per substep, no solve)
     continuum_integrator: str = "implicit"
+    # continuum = "micromorphic" (u and phi = chi - I; coupling.micro_kinematics): the packing's
+    # micropolar constants (lam, mu, kappa, gamma) as the micromorphic energy
+    # lam/2 tr(eps)^2 + G |eps|^2 + b/2 |sym(grad u - phi)|^2 + kappa/2 |skew(grad u - phi)|^2
+    # + gamma/4 |grad phi|^2 (G = mu + kappa / 2), whose limit b -> inf is the micropolar
+    # solid; continuum_micro_stiffness is b / G, how stiffly the micro-stretch follows the
+    # grains' strain (CoupledPenetration._micromorphic_material)
+    continuum_micro_stiffness: float = 1.0
 
     def __post_init__(self):
         self._check_values()
@@ -183,9 +190,18 @@ class PenetrationParameters:
             raise ValueError("interface = 'forces' needs the increment from a consolidated state "
                              "(2D, or vertical_stress > 0 in 3D): the 3D geostatic start "
                              "prescribes the window's nodes")
-        if self.continuum not in ("micropolar", "micropolar_drucker_prager"):
-            raise ValueError(f"continuum must be 'micropolar' or 'micropolar_drucker_prager', "
-                             f"got {self.continuum!r}")
+        if self.continuum not in ("micropolar", "micropolar_drucker_prager", "micromorphic"):
+            raise ValueError(f"continuum must be 'micropolar', 'micropolar_drucker_prager' or "
+                             f"'micromorphic', got {self.continuum!r}")
+        if not (np.isfinite(self.continuum_micro_stiffness) and self.continuum_micro_stiffness > 0):
+            raise ValueError(f"continuum_micro_stiffness (b / G of the micromorphic continuum) must be "
+                             f"> 0, got {self.continuum_micro_stiffness!r}")
+        if self.continuum == "micromorphic" and (self.interface != "loose"
+                                                 or self.continuum_integrator != "implicit"):
+            raise ValueError(f"continuum = 'micromorphic' couples by the loose exchange with the implicit "
+                             f"integrator so far (its phi fitted once per FE step): interface = "
+                             f"{self.interface!r} and continuum_integrator = {self.continuum_integrator!r} "
+                             f"need interface = 'loose', continuum_integrator = 'implicit'")
         if self.continuum == "micropolar_drucker_prager" and not self.vertical_stress > 0:
             raise ValueError("continuum = 'micropolar_drucker_prager' needs vertical_stress > 0 (its "
                              "yield function needs the total stress: a uniform initial stress, the "

@@ -94,7 +94,11 @@ class ContinuumModel:
     plasticity lets a displacement-driven window drift with its grains). ``integrator``:
     ``implicit`` (generalized-alpha) or ``explicit`` (central differences on a lumped mass,
     substepped below the measured stability limit: no solve, which makes a plastic far field
-    cheap, `granfe.explicit`)."""
+    cheap, `granfe.explicit`). ``micromorphic``: u and the micro-deformation phi = chi - I,
+    the elastic constants above with ``micro_stiffness`` = b / G, the stiffness of the
+    symmetric relative deformation sym(grad u - phi) over the classical shear modulus (its
+    limit b -> inf is the micropolar solid); phi at the window's nodes fitted to the grains'
+    displacements, the ghosts' rotation skew(phi)'s axial vector (`coupling.micro_kinematics`)."""
 
     model: str = parameter(P, "continuum")
     constants: str = parameter(P, "continuum_constants")
@@ -103,6 +107,7 @@ class ContinuumModel:
     cohesion: float = parameter(P, "continuum_cohesion")
     hardening: float = parameter(P, "continuum_hardening")
     integrator: str = parameter(P, "continuum_integrator")
+    micro_stiffness: float = parameter(P, "continuum_micro_stiffness")
 
 
 @dataclass(frozen=True)
