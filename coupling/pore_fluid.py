@@ -182,6 +182,9 @@ class DarcyFlow:
         facet_tags, tag_names: named boundaries (physical-group names -> tag values).
         petsc_options: overrides of the direct linear solve (LU: PETSc's on one rank, MUMPS
             on several).
+        particles: the fluid sees the first ``particles`` rows of the DEM (None: all): the
+            grains, when rigid bodies follow them (a penetrator's clump, which may stand
+            outside the mesh); the rows after them have no volume to it and get no force.
 
     Boundaries are undrained (no flux) unless :meth:`pressure`, :meth:`drained` or
     :meth:`flux` say otherwise. :meth:`step` solves one fluid step and applies the forces;
@@ -207,7 +210,7 @@ class DarcyFlow:
 
     def __init__(self, domain: _mesh.Mesh, sim, params: PoreFluidParameters | None = None, *,
                  facet_tags: _mesh.MeshTags | None = None, tag_names: dict | None = None,
-                 petsc_options: dict | None = None):
+                 petsc_options: dict | None = None, particles: int | None = None):
         self.params = params = params or PoreFluidParameters()
         if not isinstance(params, PoreFluidParameters):
             raise TypeError(f"params must be PoreFluidParameters, got {type(params).__name__}")
@@ -217,6 +220,11 @@ class DarcyFlow:
             raise ValueError(f"a {gdim}D mesh for {sim.p.dim}D grains")
         self.facet_tags, self.tag_names = facet_tags, dict(tag_names or {})
         self.volume = grain_volumes(sim.p.radius, sim.p.dim)
+        self.particles = sim.p.n if particles is None else int(particles)
+        if not 0 < self.particles <= sim.p.n:
+            raise ValueError(f"particles must lie in [1, {sim.p.n}] (the DEM's rows), got "
+                             f"{particles!r}")
+        self.volume[self.particles:] = 0.0
         self.d = params.grain_diameter or self._sauter_diameter()
         cell = domain.basix_cell()
         fam, deg = ("DG", 0) if params.porosity_space == "DG0" else ("Lagrange", 1)
@@ -241,6 +249,11 @@ class DarcyFlow:
         self._force_matrix.assemble()
         self.lumped_mass = self._lumped_mass(self.Vn)  #: int N_a dx of the local dofs of Vn
         self._storage = fem.Constant(domain, default_scalar_type(0.0))  # beta_f / dt
+        self._inv_dt = fem.Constant(domain, default_scalar_type(0.0))   # 1 / dt (0: steady)
+        #: a storage [1/Pa] beside the fluid's ``n beta_f`` (a UFL expression on the mesh, set
+        #: before the first solve), e.g. the compressibility of a skeleton whose volume change
+        #: is not the grains' (:mod:`coupling.apps.penetration.saturated`); None: none
+        self.skeleton_storage = None
         self.bcs: list = []
         self._neumann: list = []
         self._problem = None
@@ -268,7 +281,7 @@ class DarcyFlow:
 
     # ---- grains -> mesh ----------------------------------------------------------------
     def _sauter_diameter(self) -> float:
-        r, dim = self.sim.p.radius, self.sim.p.dim
+        r, dim = self.sim.p.radius[:self.particles], self.sim.p.dim
         surface = 2 * math.pi * r if dim == 2 else 4 * math.pi * r**2
         return float(2 * dim * self.volume.sum() / surface.sum())
 
@@ -287,7 +300,7 @@ class DarcyFlow:
         While every grain stays in its rank's cells only the moved ones are searched for; if
         one left them (another rank's cells, or the mesh) the grains are shared out anew
         (:func:`coupling.locate.owner_ranks` names those outside)."""
-        x = self.sim.p.x[:, : self.domain.geometry.dim]
+        x = self.positions()
         if self._mine is not None:
             mine = self._mine
             cells, X, _, lost = relocate(self.domain, x[mine], self._grains.cells,
@@ -298,6 +311,12 @@ class DarcyFlow:
         owners = owner_ranks(self.domain, x)
         self._mine = np.flatnonzero(owners == self.domain.comm.rank)
         self._grains.evaluate(*locate_owned(self.domain, x[self._mine]))
+
+    def positions(self) -> np.ndarray:
+        """(particles, gdim) [m] the grains' centroids where the fluid bins them: where they
+        are (a subclass may bring those that left the mesh back to its edge, e.g. grains
+        heaved above a free surface that the mesh ends at)."""
+        return self.sim.p.x[:self.particles, : self.domain.geometry.dim]
 
     def _work(self, name: str, V) -> fem.Function:
         """A scratch Function on V kept between fluid steps (its PETSc wrapper is made once)."""
@@ -380,6 +399,10 @@ class DarcyFlow:
         n, s = self.porosity, self._storage
         a = s * n * p * q * ufl.dx + k_mu * ufl.inner(ufl.grad(p), ufl.grad(q)) * ufl.dx
         L = s * n * self.p_old * q * ufl.dx + ufl.inner(self.velocity, ufl.grad(q)) * ufl.dx
+        if self.skeleton_storage is not None:
+            c = self._inv_dt * self.skeleton_storage
+            a += c * p * q * ufl.dx
+            L += c * self.p_old * q * ufl.dx
         ds = self._ds()
         for _, tag, g in self._neumann:
             L += g * q * ds(tag)
@@ -401,6 +424,8 @@ class DarcyFlow:
         k_mu = self.permeability() / self.params.viscosity
         r = (self._storage * self.porosity * (self.p - self.p_old) * q
              + ufl.inner(k_mu * ufl.grad(self.p) - self.velocity, ufl.grad(q))) * ufl.dx
+        if self.skeleton_storage is not None:
+            r += self._inv_dt * self.skeleton_storage * (self.p - self.p_old) * q * ufl.dx
         ds = self._ds()
         for _, tag, g in self._neumann:
             r -= g * q * ds(tag)
@@ -421,6 +446,7 @@ class DarcyFlow:
         self.update_from_grains()
         self.p_old.x.array[:] = self.p.x.array
         self._storage.value = 0.0 if steady else self.params.compressibility / dt
+        self._inv_dt.value = 0.0 if dt is None else 1.0 / dt
         if self._problem is None:
             a, L = self._forms()
             self._problem = LinearProblem(a, L, bcs=self.bcs, u=self.p,
@@ -516,9 +542,10 @@ class DarcyFlow:
             return
         # the cells holding grains, numbered 0..G-1 (a count over the mesh's cells: np.unique
         # sorts, the fluid's step is paid every few DEM steps)
-        held = np.bincount(cell, minlength=self.domain.topology.index_map(
+        seen = cell >= 0      # (the rows the fluid does not see have no cell)
+        held = np.bincount(cell[seen], minlength=self.domain.topology.index_map(
             self.domain.topology.dim).size_global) > 0
-        group = (np.cumsum(held) - 1)[cell]
+        group = np.where(seen, (np.cumsum(held) - 1)[np.maximum(cell, 0)], -1)
         u_ref = group_means(self.sim.p.v, group, self.volume, int(held.sum()))
         self.drag = GroupDrag(group, self.volume, alpha, u_ref, flags)
 

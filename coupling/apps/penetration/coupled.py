@@ -1017,6 +1017,7 @@ class CoupledPenetration:
         ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0], self.dt_fe)
         for servo in self.servos:   # the top plate's speed, held over the sub-cycle
             servo(sim)
+        hook = self._before_sub_cycle(hook)
         self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
                                prm.velocity, VERTICAL[prm.dim], ghosts, hook=hook)
         t1 = clock()
@@ -1039,6 +1040,12 @@ class CoupledPenetration:
                                   "projection": t2 - t1, "fe_solve": t3 - t2,
                                   "total": self.history[-1]["wall_time"]})
         return self.history[-1]
+
+    def _before_sub_cycle(self, hook):
+        """Called once before each FE step's DEM sub-cycle; returns the hook of its DEM steps
+        (``hook``: the exchange's own). A saturated run solves its fluid here and adds the
+        fluid's drag (:mod:`coupling.apps.penetration.saturated`)."""
+        return hook
 
     def _refined_depth(self) -> float:
         """Depth [m] down to which the chamber's mesh is refined to the window's element

@@ -27,7 +27,7 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
                     fields: bool = True, particles: bool = True, png: bool = True,
                     progress: bool = True, log=None, checkpoint_every: int = 0,
                     restart: bool = False, moving=None, checkpoint=None, stop=None,
-                    meta: dict | None = None) -> dict:
+                    meta: dict | None = None, fluid=None) -> dict:
     """Set up, run and write a coupled penetration into ``out``; returns the results dict.
 
     The loop, frames, checkpoints and stops are :func:`coupling.runner.run_steps`'s.
@@ -39,13 +39,18 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
     ``out/checkpoint``); ``meta`` goes into every checkpoint's manifest (the run's
     fingerprint); ``stop`` (:class:`coupling.interrupts.StopRequests`): after an FE step on
     which a signal arrived, write a checkpoint and raise
-    :class:`coupling.interrupts.Interrupted`.
+    :class:`coupling.interrupts.Interrupted`. ``fluid``
+    (:class:`~coupling.apps.penetration.fluid.FluidParameters`): saturated, with a pore fluid
+    (:mod:`coupling.apps.penetration.saturated`; no checkpoints, no moving window).
     """
     out = Path(out)
     checkpoint = out / "checkpoint" if checkpoint is None else Path(checkpoint)
     if restart and not (checkpoint / "state.json").exists():
         raise FileNotFoundError(f"no complete checkpoint in {checkpoint} to restart from "
                                 "(output.checkpoint_every = 0, or the run stopped before the first)")
+    if fluid is not None and (restart or checkpoint_every or moving is not None):
+        raise ValueError("a saturated penetration writes no checkpoints and keeps its window "
+                         "so far: checkpoint_every must be 0, restart False and moving None")
     if moving is not None and (restart or checkpoint_every):
         raise ValueError("a window that follows the penetrator writes no checkpoints yet: "
                          "checkpoint_every must be 0 and restart False")
@@ -55,7 +60,7 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
     comm.barrier()
     t0 = time.perf_counter()
     with collective_gc(comm):
-        cpt = _set_up(prm, comm, log, moving, checkpoint if restart else None, out)
+        cpt = _set_up(prm, comm, log, moving, checkpoint if restart else None, out, fluid)
     t_setup = time.perf_counter() - t0
     start = len(cpt.history)
     m = cpt.material_fe
@@ -82,19 +87,24 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
                "ranks": comm.size, "history": history, "window_moves": getattr(cpt, "moves", []),
                "q_c_mean_last_half": float(np.mean([h["q_c"] for h in history[len(history) // 2:]])),
                "filter_window_m": steps.filter_window}
+    if fluid is not None:
+        results["fluid"] = cpt.summary()
     if comm.rank == 0:
         (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
         log(f"{len(pushed)} FE steps, {cpt.sim.nsteps} DEM steps in {t_run:.1f} s; outputs in {out}")
     return results
 
 
-def _set_up(prm, comm, log, moving, checkpoint, out):
+def _set_up(prm, comm, log, moving, checkpoint, out, fluid=None):
     """The coupled penetration, settled (or read from ``checkpoint``); a failure while
     settling or deriving the continuum keeps the grains' last good state in ``out/last_good``."""
     from dem.errors import BlowUpError, DemError
     from dem.io import save_state
 
     try:
+        if fluid is not None:
+            from coupling.apps.penetration.saturated import SaturatedPenetration
+            return SaturatedPenetration(prm, fluid, comm, log=log)
         if moving is None:
             return CoupledPenetration(prm, comm, log=log, checkpoint=checkpoint)
         from coupling.apps.penetration.moving_window import MovingWindowPenetration
@@ -163,7 +173,8 @@ class PenetrationSteps:
 
     def finish(self) -> None:
         """The smoothed profiles beside the raw ones (``q_c_filtered``, ``f_s_filtered``)."""
-        for key in ("q_c", "f_s"):
+        wet = bool(self.history) and "u2" in self.history[0]   # (a saturated run)
+        for key in ("q_c", "f_s") + (("u2", "q_t") if wet else ()):
             for h, v in zip(self.history, filtered(self.history, key, self.filter_window), strict=True):
                 h[f"{key}_filtered"] = float(v)
 
@@ -252,7 +263,8 @@ def execute(scene, out, comm, *, progress: bool = True, checkpoint=None, stop=No
     run_penetration(scene.parameters(), out, comm, frames=o.frames, fields=o.fields,
                     particles=o.particles, png=o.png, progress=progress,
                     checkpoint_every=o.checkpoint_every, restart=checkpoint is not None,
-                    moving=scene.moving_parameters(), checkpoint=checkpoint, stop=stop, meta=meta)
+                    moving=scene.moving_parameters(), checkpoint=checkpoint, stop=stop, meta=meta,
+                    fluid=scene.fluid_parameters())
 
 
 def summarise_penetration(scene, ranks: int = 1) -> dict:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from coupling.apps.penetration.fluid import FluidParameters as F
 from coupling.apps.penetration.parameters import MovingWindowParameters as M
 from coupling.apps.penetration.parameters import PenetrationParameters as P
 from coupling.scene import SceneError, SceneInfo, _named, _Tables, parameter, parameter_keys, parameter_values
@@ -166,6 +167,23 @@ class Follow:
 
 
 @dataclass(frozen=True)
+class Fluid:
+    """A Darcy pore fluid through the window's grains and the chamber (:mod:`coupling.apps.
+    penetration.saturated`; 2D, loose exchange, no checkpoints): off unless ``enabled``.
+    ``permeability`` [m^2] (constant), ``viscosity`` [Pa s], ``compressibility`` [1/Pa],
+    ``density`` [kg/m^3], ``saturation_time`` [s] the window takes its buoyancy before the
+    push, ``every``: DEM steps per fluid step (dividing ``coupling.substeps``)."""
+
+    enabled: bool = False
+    permeability: float = parameter(F, "permeability")
+    viscosity: float = parameter(F, "viscosity")
+    compressibility: float = parameter(F, "compressibility")
+    density: float = parameter(F, "density")
+    saturation_time: float = parameter(F, "saturation_time")
+    every: int = parameter(F, "every")
+
+
+@dataclass(frozen=True)
 class PenetrationScene(_Tables):
     """A ``penetration`` scene: a cone or pile pushed into frictional grains coupled to the
     continuum, 2D or 3D (``scene.dimension``)."""
@@ -179,10 +197,12 @@ class PenetrationScene(_Tables):
     coupling: Exchange = field(default_factory=Exchange)
     output: PenetrationOutput = field(default_factory=PenetrationOutput)
     follow: Follow = field(default_factory=Follow)
+    fluid: Fluid = field(default_factory=Fluid)
 
     def __post_init__(self):
         self.parameters()  # validate the combination, naming the scene key
         self._check_sizes()
+        self.fluid_parameters()
         if self.follow.enabled:
             self.moving_parameters()
             if self.coupling.interface != "loose":
@@ -211,6 +231,29 @@ class PenetrationScene(_Tables):
                              f"chamber.element_size_window = {c.element_size_window} leave the "
                              "window's FE nodes without grains (the projection needs several "
                              "per element)")
+
+    def fluid_parameters(self) -> F | None:
+        """The :class:`~coupling.apps.penetration.fluid.FluidParameters` of this scene, or
+        None when it is dry (no ``[fluid]``, or ``enabled = false``)."""
+        if not self.fluid.enabled:
+            return None
+        try:
+            fluid = F(**parameter_values(self, F))
+        except ValueError as err:
+            raise SceneError(_named(str(err), parameter_keys(self, F))) from None
+        needs = {"scene.dimension = 2": self.scene.dimension == 2,
+                 "coupling.interface = 'loose'": self.coupling.interface == "loose",
+                 "follow.enabled = false": not self.follow.enabled,
+                 "output.checkpoint_every = 0": self.output.checkpoint_every == 0}
+        for need, ok in needs.items():
+            if not ok:
+                raise SceneError(f"fluid.enabled = true needs {need} (a saturated penetration is "
+                                 "2D, exchanges loosely, keeps its window and writes no "
+                                 "checkpoints so far)")
+        if self.coupling.substeps % fluid.every:
+            raise SceneError(f"fluid.every = {fluid.every} DEM steps must divide coupling.substeps "
+                             f"= {self.coupling.substeps}")
+        return fluid
 
     def moving_parameters(self) -> M | None:
         """The :class:`~coupling.apps.penetration.parameters.MovingWindowParameters` of this

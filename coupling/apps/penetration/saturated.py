@@ -1,0 +1,405 @@
+"""Saturated coupled penetration (CPTu): one Darcy pore pressure over the whole chamber,
+driven by the window's grains and by the continuum, acting on the free grains.
+
+The pressure ``p`` (the deviation from hydrostatic) is one P1 field on the continuum's mesh,
+continuous across the overlap by construction, solved once per FE step by backward Euler
+(`coupling.pore_fluid.DarcyFlow`, seed 003 eq. 5.4-5.5):
+
+    (n beta_f + (1 - w) / K) dp/dt + div v - div((k / mu_f) grad p) = 0,
+
+    v = w v_grains + (1 - w) v_FE,    n = w n_grains + (1 - w) n_0,
+
+with ``w`` the grains' weight on the mesh's nodes: 1 inside the window down to the
+coupling's prescribed nodes (a handshake inside its edge), falling linearly to 0 where a
+node's support would reach past the grains (an element inside the ghost band's outer edge),
+0 in the continuum. Inside, the source is the grains' volumetric change (their volume-
+weighted mean velocity by the FE basis at their centroids, the penetrator's solid counted
+as a grain moving at its velocity) and the grains feel the seepage force ``-grad p`` and
+the implicit drag of `dem.drag.GroupDrag`. Outside, the continuum is *drained* as far as
+its mechanics go (it is the dry micropolar model: it does not feel p), and its volumetric
+strain rate ``div v_FE`` is the source with the skeleton's compressibility ``1 / K`` (K its
+plane-strain bulk modulus) as storage: the pressure there is the fixed-stress estimate of a
+Biot continuum whose total mean stress the dry run gives (undrained and steady:
+``p = K eps_v``, i.e. p = the change of the mean total stress; drained: p -> 0), and it
+diffuses with Rendulic's ``c = k K / mu_f``. The continuum's mechanics are not saturated
+(no u-p coupling in the FE step): a model limit stated, not hidden.
+
+The penetrator is solid to the fluid: points filling its section (spacing half a grain
+radius) carry its area at its velocity into the solid fraction and the mean velocity,
+and the permeability inside it falls to ``k (1 - c)`` (c its area fraction, floored at a
+thousandth). Its share of ``-int grad p dx`` is the pore pressure's force on it: the
+excess-pressure part of the cone's total resistance, ``q_t = q_c + q_u`` (q_c the grains'
+contacts, the effective part). The top (the free surface) is drained, every other side
+undrained. Readings per FE step: ``u1`` (the face, mid-height, a grain radius out), ``u2``
+(the shoulder just above the cone, a grain radius out, CPTu's standard position) and
+``u_max`` the largest excess pressure, from the solve at the step's start.
+
+2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
+
+import numpy as np
+import ufl
+from dolfinx import default_scalar_type, fem
+
+from coupling.apps.penetration.coupled import CoupledPenetration
+from coupling.apps.penetration.fluid import FluidParameters
+from coupling.apps.penetration.parameters import VERTICAL
+from coupling.apps.penetration.penetrators import tip_height
+from coupling.locate import locate_owned, owner_ranks, relocate
+from coupling.pore_fluid import DarcyFlow, PoreFluidParameters, _GrainSpace
+from dem.drag import group_means
+
+__all__ = ["ChamberFlow", "SaturatedPenetration", "FluidParameters"]
+
+#: the penetrator's permeability over the soil's at full solid cover
+CONE_PERMEABILITY = 1e-3
+#: the space of the porosity and solid velocity: P1, each node averaging the grains of its
+#: support (~20 grains; a window element holds ~3). Measured on the loose window pushed at
+#: V = 29: the pressures with DG0 cells were 3-5x those with P1 (the cells' velocity means
+#: are noisier), and DG0 with a fluid step every 10 DEM steps at water's compressibility
+#: swung the tip pressure by +-100 kPa from one FE step to the next
+POROSITY_SPACE = "P1"
+
+
+def bulk_modulus_2d(material) -> float:
+    """Plane-strain bulk modulus ``lam + G`` [Pa] of a micropolar material, G = mu + kappa / 2
+    its classical shear modulus."""
+    return material.lam + material.mu + 0.5 * material.kappa
+
+
+def constrained_modulus_2d(material) -> float:
+    """Constrained (oedometric) modulus ``lam + 2 G`` [Pa]."""
+    return material.lam + 2 * material.mu + material.kappa
+
+
+class ChamberFlow(DarcyFlow):
+    """The pore fluid of a :class:`SaturatedPenetration`: a :class:`~coupling.pore_fluid.
+    DarcyFlow` on the continuum's mesh whose porosity and solid velocity are the grains'
+    and the penetrator's inside the window, blended into the continuum's over the overlap
+    (the module docstring). Build it after the continuum (it reads the stepper's velocity).
+    """
+
+    def __init__(self, cpt: CoupledPenetration, fluid: FluidParameters):
+        prm = cpt.prm
+        if prm.dim != 2:
+            raise ValueError(f"a saturated penetration is 2D so far, got dim = {prm.dim}")
+        self.cpt, self.fluid_prm = cpt, fluid
+        params = PoreFluidParameters(viscosity=fluid.viscosity, compressibility=fluid.compressibility,
+                                     density=fluid.density, permeability=fluid.permeability,
+                                     porosity_space=POROSITY_SPACE, porosity_min=0.02, porosity_max=0.98)
+        problem = cpt.problem
+        super().__init__(problem.domain, cpt.sim, params, facet_tags=problem.facet_tags,
+                         tag_names=problem.tag_names, particles=cpt.n_grains)
+        self.drained("top")
+        domain, gdim = self.domain, 2
+        self.weight = fem.Function(self.Vn, name="grain_weight")
+        self.weight.x.array[:] = self._grain_weight(self.Vn.tabulate_dof_coordinates()[:, :gdim])
+        self.cone_fraction = fem.Function(self.Vn, name="cone_fraction")
+        self.fe_velocity = fem.Function(self.Vv, name="continuum_velocity")
+        self._k = fem.Constant(domain, default_scalar_type(fluid.permeability))
+        #: the penetrator's speed [m/s] the fluid sees (0 while the window saturates)
+        self.cone_speed = prm.velocity
+        self.K = bulk_modulus_2d(cpt.material_fe)
+        self.M = constrained_modulus_2d(cpt.material_fe)
+        self.skeleton_storage = (1.0 - self.weight) / self.K
+        self._cone = _Tracked(domain, self.Vn.ufl_element(), self._maps)
+        if not np.array_equal(self._cone.space.V.dofmap.list, self.Vn.dofmap.list):
+            raise RuntimeError("the penetrator's space does not number the grains' dofs alike")
+        self._probes = _Tracked(domain, self.Vp.ufl_element(), self._maps)
+        self._cone_template, self._cone_area = self._cone_points()
+        self.cone_force = np.zeros(3)   #: the pore pressure's force on the penetrator [N/m]
+        w = self.weight.x.array
+        solid = self._work("solid", self.Vn).x.array
+        inner = w >= 1.0
+        #: the continuum's porosity: the window's mean, over its fully weighted nodes
+        self.n0 = float(1.0 - domain.comm.allreduce(float(solid[inner].sum()))
+                        / domain.comm.allreduce(float(self.lumped_mass[inner].sum())))
+        self._cone_sums = (np.zeros_like(w), np.zeros((len(w), gdim)))
+        self._x_last = None   # the grains' positions at the last fluid step
+        self._rate = None     # (n, 3) their displacement rate over it [m/s]
+        self._step_dt = None
+        self._fe_u_velocity = None
+
+    # ---- where the grains count ------------------------------------------------------------
+    def _grain_weight(self, x: np.ndarray) -> np.ndarray:
+        """The grains' weight w (m,) at points x (m, 2): 1 at signed distance -handshake
+        from the window (the coupling's prescribed nodes), 0 an element inside the ghost
+        band's outer edge, linear between (a node's P1 porosity averages its support, an
+        element about it)."""
+        prm = self.cpt.prm
+        h = prm.element_size_window
+        d0 = -prm.handshake * h
+        d1 = prm.ghost_width * 2 * prm.radius - h
+        if not d1 > d0:
+            raise ValueError(f"the overlap has no room for the fluid's blend: window.handshake "
+                             f"({prm.handshake} elements) and window.ghost_width ({prm.ghost_width} "
+                             f"diameters) leave {d1 - d0:.3g} m")
+        d = self.cpt.regions.window.signed_distance(x)
+        return np.clip((d1 - d) / (d1 - d0), 0.0, 1.0)
+
+    def _cone_points(self):
+        """Points (k, 3) filling the penetrator's section (its tip at the origin: the clump's
+        placement at depth 0 is added per solve) and the area each carries [m^2]."""
+        prm = self.cpt.prm
+        R, h_cone = prm.cone_radius, tip_height(prm)
+        s = 0.5 * prm.radius
+        top = h_cone + prm.depth + 2 * R
+        xs = np.arange(-R + s / 2, R, s)
+        ys = np.arange(s / 2, top, s)
+        X, Y = np.meshgrid(xs, ys)
+        inside = Y >= np.abs(X) * h_cone / R
+        pts = np.column_stack([X[inside], Y[inside], np.zeros(inside.sum())])
+        return pts, s * s
+
+    def cone_tip(self) -> np.ndarray:
+        """(3,) the cone's apex now [m], from the clump's disks where the DEM has them (also
+        inside a sub-cycle; the apex disk is ``rc / sin(apex / 2)`` above the apex,
+        :func:`~coupling.apps.penetration.penetrators.cone_clump`)."""
+        cpt, prm = self.cpt, self.cpt.prm
+        ax = VERTICAL[prm.dim]
+        pen = cpt.sim.p.x[cpt.pen_index]
+        r_pen = float(cpt.sim.p.radius[cpt.pen_index[0]])
+        tip = np.zeros(3)
+        tip[ax] = pen[:, ax].min() - r_pen / np.sin(np.radians(prm.apex_deg) / 2)
+        tip[0] = float(np.mean(pen[:, 0]))
+        return tip
+
+    def _penetrator_sums(self):
+        """(S_c, sum of area times velocity) (m,), (m, 2) of the penetrator's section on Vn
+        (its points above the surface carry nothing)."""
+        prm, surface = self.cpt.prm, self.cpt.surface
+        x = self._cone_template + self.cone_tip()
+        area = np.where(x[:, 1] < surface, self._cone_area, 0.0)
+        np.minimum(x[:, 1], surface - 1e-6 * prm.radius, out=x[:, 1])
+        S = self._work("cone_solid", self.Vn)
+        SV = self._work("cone_momentum", self.Vv)
+        mine = self._cone.locate(x[:, :2])
+        self._cone.space.sum_to(area[mine], S)
+        v = np.zeros((len(mine), 2))
+        v[:, VERTICAL[prm.dim]] = -self.cone_speed
+        self._cone.space.sum_to(area[mine, None] * v, SV)
+        return S.x.array, SV.x.array.reshape(-1, 2)
+
+    # ---- grains and continuum -> mesh -----------------------------------------------------
+    def positions(self) -> np.ndarray:
+        """The grains' centroids, those heaved above the mesh (which ends at the settled
+        surface) binned at its top: a heave of a grain or two, which the top cells take."""
+        x = super().positions().copy()
+        np.minimum(x[:, 1], self.cpt.surface - 1e-6 * self.cpt.prm.radius, out=x[:, 1])
+        return x
+
+    def update_from_grains(self) -> None:
+        """Porosity and solid velocity on the mesh: the grains' and the penetrator's, weighted
+        by w, and the continuum's (n_0, its velocity) by 1 - w (collective)."""
+        super().update_from_grains()
+        gdim = 2
+        solid = self._work("solid", self.Vn).x.array   # sum_i V_i N_a(x_i): the grains'
+        x = self.sim.p.x[:self.particles]
+        self._rate = None
+        if self._x_last is not None and self._step_dt:
+            # the grains' mean velocity over the last fluid step: their displacement over it
+            self._rate = np.zeros((self.sim.p.n, 3))
+            self._rate[:self.particles] = (x - self._x_last) / self._step_dt
+            mine = self._mine
+            self._grains.sum_to(self.volume[mine, None] * self._rate[mine, :gdim], self.velocity)
+        self._x_last = x.copy()
+        momentum = self.velocity.x.array.reshape(-1, gdim)
+        if self._rate is None:
+            momentum = momentum * solid[:, None]
+        Sc, SVc = self._penetrator_sums()
+        self._cone_sums = (Sc.copy(), SVc.copy())
+        S = solid + Sc
+        v_g = np.divide(momentum + SVc, S[:, None], out=np.zeros_like(momentum), where=S[:, None] > 0)
+        n_g = 1.0 - S / self.lumped_mass
+        w = self.weight.x.array
+        if self._fe_u_velocity is None:   # (a view of the stepper's velocity: made once)
+            self._fe_u_velocity = self.cpt.stepper.v.sub(0)
+        self.fe_velocity.interpolate(self._fe_u_velocity)
+        v_c = self.fe_velocity.x.array.reshape(-1, gdim)
+        self.porosity.x.array[:] = w * n_g + (1.0 - w) * self.n0
+        self._clip_porosity()
+        self.velocity.x.array[:] = (w[:, None] * v_g + (1.0 - w[:, None]) * v_c).ravel()
+        self.cone_fraction.x.array[:] = np.minimum(Sc / self.lumped_mass, 1.0)
+        solid[:] = S   # the penetrator takes its share of the seepage force: the pressure on it
+
+    def permeability(self):
+        """The permeability k (1 - c), c the penetrator's area fraction (floored at
+        CONE_PERMEABILITY)."""
+        return self._k * ufl.max_value(1.0 - self.cone_fraction, CONE_PERMEABILITY)
+
+    def set_permeability(self, k: float) -> None:
+        """The soil's permeability k [m^2] from the next solve on (forms and drag)."""
+        self.params = replace(self.params, permeability=float(k))
+        self._k.value = float(k)
+
+    def solve(self, dt: float | None = None):
+        self._step_dt = dt
+        return super().solve(dt)
+
+    def apply_forces(self) -> None:
+        """The grains' forces and drag (DarcyFlow; the drag about the cell means of the
+        displacement rate the fluid saw), and the penetrator's share of ``-int grad p dx``
+        (:attr:`cone_force`)."""
+        super().apply_forces()
+        if self.drag is not None and self._rate is not None:
+            self.drag.u_ref[:] = group_means(self._rate, self.drag.group, self.volume,
+                                             len(self.drag.u_ref))
+        F = self.nodal_force.x.array.reshape(-1, 2)     # (set by the grains' forces just now)
+        floor = (1.0 - self.params.porosity_max) * self.lumped_mass
+        share = np.maximum(self._work("solid", self.Vn).x.array, floor)
+        f = F * (self._cone_sums[0] / share)[:, None]
+        owned = self.Vn.dofmap.index_map.size_local
+        self.cone_force[:2] = self.domain.comm.allreduce(f[:owned].sum(axis=0))
+
+    # ---- readings -------------------------------------------------------------------------
+    def readings(self) -> dict:
+        """u1, u2 [Pa] (excess pore pressures on the face and at the shoulder, a grain radius
+        out; 0 above the surface, which is drained), the largest excess pressure, and the
+        pressure's push on the cone over its width q_u [Pa] (collective)."""
+        prm, cpt = self.cpt.prm, self.cpt
+        tip, R, h_cone, r = self.cone_tip(), prm.cone_radius, tip_height(prm), prm.radius
+        half = np.radians(prm.apex_deg) / 2
+        normal = np.array([np.cos(half), -np.sin(half)])   # the right face's outward normal
+        face = np.array([R / 2, h_cone / 2]) + r * normal
+        pts = {"u1": [face * (-1, 1), face], "u2": [(-R - r, h_cone + r), (R + r, h_cone + r)]}
+        x = np.vstack([pts["u1"], pts["u2"]]) + tip[:2]
+        below = x[:, 1] < cpt.surface      # (the surface is drained: 0 above it)
+        np.minimum(x[:, 1], cpt.surface - 1e-6 * r, out=x[:, 1])
+        mine = self._probes.locate(x)
+        vals = np.zeros(len(x))
+        vals[mine] = self._probes.space.at_grains(self.p)[:, 0]
+        vals = self.domain.comm.allreduce(vals) * below
+        out = {"u1": float(vals[:2].mean()), "u2": float(vals[2:].mean())}
+        out["u_max"] = self.domain.comm.allreduce(float(self.p.x.array.max(initial=0.0)), op=MPI.MAX)
+        out["q_u"] = float(self.cone_force[1] / (2 * R))
+        return out
+
+
+class _Tracked:
+    """Points moving over a fixed mesh and a space's basis at them: located anew only when
+    one of this rank's left its cells (as `DarcyFlow.grains_to_mesh` does for the grains)."""
+
+    def __init__(self, domain, element, maps):
+        self.domain, self.maps = domain, maps
+        self.space = _GrainSpace(domain, element)
+        self.mine = None
+
+    def locate(self, x: np.ndarray) -> np.ndarray:
+        """Evaluate the basis at the points x (m, gdim) this rank owns; returns their indices
+        (collective)."""
+        comm = self.domain.comm
+        if self.mine is not None:
+            cells, X, _, lost = relocate(self.domain, x[self.mine], self.space.cells, maps=self.maps)
+            if comm.allreduce(int(lost.sum())) == 0:
+                self.space.evaluate(cells, X)
+                return self.mine
+        owners = owner_ranks(self.domain, x)
+        self.mine = np.flatnonzero(owners == comm.rank)
+        self.space.evaluate(*locate_owned(self.domain, x[self.mine]))
+        return self.mine
+
+
+class SaturatedPenetration(CoupledPenetration):
+    """:class:`~coupling.apps.penetration.coupled.CoupledPenetration` with a pore fluid
+    (:class:`ChamberFlow`): after the set-up the window takes its buoyancy for
+    ``fluid.saturation_time`` (ghosts and penetrator held, the fluid drained at the
+    surface; the grains' reference positions are then taken again: the continuum models the
+    increment from the saturated state), then each FE step solves the fluid once before
+    its DEM sub-cycle, whose every step takes the implicit drag. The history records add
+    u1, u2, u_max, q_u and q_t = q_c + q_u (:meth:`ChamberFlow.readings`). Loose exchange,
+    no checkpoints (the fluid's state is not in them)."""
+
+    def __init__(self, prm, fluid: FluidParameters, comm, log=print):
+        if prm.substeps % fluid.every:
+            raise ValueError(f"fluid.every = {fluid.every} DEM steps must divide the FE step's "
+                             f"substeps ({prm.substeps})")
+        if prm.interface != "loose":
+            raise ValueError(f"interface = {prm.interface!r}: a saturated penetration exchanges "
+                             "loosely so far (interface = 'loose')")
+        super().__init__(prm, comm, log=log)
+        self.fluid = fluid
+        t0 = time.perf_counter()
+        self.flow = ChamberFlow(self, fluid)
+        self.fluid_time = 0.0
+        self._saturate()
+        self.log(f"saturated in {time.perf_counter() - t0:.1f} s: k = {fluid.permeability:.3g} m^2, "
+                 f"c_v = {self.consolidation_coefficient():.3g} m^2/s, V = v d / c_v = "
+                 f"{self.normalised_velocity():.3g}, window porosity {self.flow.n0:.3f}")
+
+    def consolidation_coefficient(self) -> float:
+        """c_v = k M / mu_f [m^2/s], M the continuum's constrained modulus (the packing's)."""
+        return self.fluid.consolidation_coefficient(self.flow.M)
+
+    def normalised_velocity(self) -> float:
+        """V = v d / c_v (d the cone's diameter): drained below ~0.3, undrained above ~30
+        (Randolph & Hope 2004; DeJong & Randolph 2012)."""
+        return self.prm.velocity * 2 * self.prm.cone_radius / self.consolidation_coefficient()
+
+    def saturation_permeability(self) -> float:
+        """The permeability [m^2] the window saturates with: the run's, or higher, so that
+        the window's depth consolidates in a tenth of ``saturation_time`` (c_v t = 10 L^2):
+        the rebound from the buoyancy and the packing's own creep drain before the push, as
+        a deposit's have long before a sounding."""
+        t, L = max(self.fluid.saturation_time, 1e-30), self.prm.window_depth
+        drained = 10 * self.fluid.viscosity * L**2 / (self.flow.M * t)
+        return max(self.fluid.permeability, drained)
+
+    def _saturate(self) -> None:
+        """The window under buoyancy and a drained fluid for ``saturation_time``, the ghosts
+        and the penetrator held; the grains' reference positions are taken again."""
+        sim, m = self.sim, self.prm.substeps   # (drained: the fluid step of an FE step)
+        steps = int(np.ceil(self.fluid.saturation_time / sim.dt / m))
+        self.flow.cone_speed = 0.0
+        self.flow.set_permeability(self.saturation_permeability())
+        for _ in range(steps):
+            self.flow.step(m * sim.dt)
+            sim.step(m, drag=self.flow.drag)
+        self.flow.cone_speed = self.prm.velocity
+        self.flow.set_permeability(self.fluid.permeability)
+        self.x_ref[:] = sim.p.x[:self.n_grains]
+        self.flow.p.x.array[:] = 0.0   # the push starts from hydrostatic
+
+    def _fluid_step(self) -> None:
+        t0 = time.perf_counter()
+        self.flow.step(self.fluid.every * self.sim.dt)
+        self.fluid_time += time.perf_counter() - t0
+
+    def _before_sub_cycle(self, hook):
+        """A fluid step now (the grains and the continuum as they are), read at the FE step's
+        start; the returned hook of the sub-cycle's DEM steps solves the fluid again every
+        ``fluid.every`` DEM steps and applies the last fluid step's implicit drag in each,
+        then ``hook``."""
+        self._fluid_step()
+        self._readings = self.flow.readings()
+        count = 0
+
+        def fluid_hook():
+            nonlocal count
+            count += 1
+            if count % self.fluid.every == 0 and count < self.prm.substeps:
+                self._fluid_step()
+            if self.flow.drag is not None:
+                self.flow.drag.apply(self.sim)
+            return bool(hook()) if hook is not None else False
+        return fluid_hook
+
+    def advance(self) -> dict:
+        record = super().advance()
+        record.update(self._readings, q_t=record["q_c"] + self._readings["q_u"])
+        return record
+
+    def summary(self) -> dict:
+        """The fluid's parameters and the run's drainage figures (for results.json)."""
+        return {"permeability": self.fluid.permeability, "viscosity": self.fluid.viscosity,
+                "compressibility": self.fluid.compressibility, "density": self.fluid.density,
+                "bulk_modulus": self.flow.K, "constrained_modulus": self.flow.M,
+                "c_v": self.consolidation_coefficient(), "V": self.normalised_velocity(),
+                "porosity_window": self.flow.n0, "fluid_time_s": self.fluid_time}
