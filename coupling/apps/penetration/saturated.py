@@ -118,10 +118,11 @@ class ChamberFlow(DarcyFlow):
         self.cone_force = np.zeros(3)   #: the pore pressure's force on the penetrator [N/m]
         w = self.weight.x.array
         solid = self._work("solid", self.Vn).x.array
-        inner = w >= 1.0
-        #: the continuum's porosity: the window's mean, over its fully weighted nodes
-        self.n0 = float(1.0 - domain.comm.allreduce(float(solid[inner].sum()))
-                        / domain.comm.allreduce(float(self.lumped_mass[inner].sum())))
+        owned = self.Vn.dofmap.index_map.size_local
+        inner = w[:owned] >= 1.0
+        #: the continuum's porosity: the window's mean, over its fully weighted (owned) nodes
+        self.n0 = float(1.0 - domain.comm.allreduce(float(solid[:owned][inner].sum()))
+                        / domain.comm.allreduce(float(self.lumped_mass[:owned][inner].sum())))
         self._cone_sums = (np.zeros_like(w), np.zeros((len(w), gdim)))
         self._x_last = None   # the grains' positions at the last fluid step
         self._rate = None     # (n, 3) their displacement rate over it [m/s]
