@@ -290,6 +290,9 @@ def test_penetration_scene_selects_the_micromorphic_continuum_and_names_bad_keys
         load_scene(None, {"continuum": {"model": "micromorphic", "micro_stiffness": 0.0}})
     with pytest.raises(SceneError, match=r"coupling\.interface = 'iqn-ils'.*need coupling\.interface = 'loose'"):
         load_scene(None, {"continuum": {"model": "micromorphic"}, "coupling": {"interface": "iqn-ils"}})
+    with pytest.raises(SceneError, match=r"continuum\.model = 'micromorphic' needs follow\.enabled = false"):
+        load_scene(None, {"continuum": {"model": "micromorphic"}, "follow": {"enabled": True},
+                          "output": {"checkpoint_every": 0}})
     with pytest.raises(SceneError, match=r"continuum\.integrator = 'explicit'"):
         load_scene(None, {"continuum": {"model": "micromorphic", "integrator": "explicit"}})
     with pytest.raises(SceneError, match=r"continuum\.model must be 'micropolar', 'micropolar_drucker_prager' or "

@@ -205,6 +205,9 @@ class PenetrationScene(_Tables):
         self.fluid_parameters()
         if self.follow.enabled:
             self.moving_parameters()
+            if self.continuum.model == "micromorphic":
+                raise SceneError("continuum.model = 'micromorphic' needs follow.enabled = false: the "
+                                 "window that follows the penetrator prescribes no micro-deformation yet")
             if self.coupling.interface != "loose":
                 raise SceneError(f"coupling.interface = {self.coupling.interface!r}: a window that "
                                  "follows the penetrator exchanges loosely so far (coupling.interface "
