@@ -279,51 +279,57 @@ def plot(results, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
     h = results["run"]["history"]
     ax = axes[0, 0]
-    ax.plot([r["depth"] * 1e3 for r in h], [r["q_c"] / 1e3 for r in h], label="run")
+    ax.plot([r["depth"] * 1e3 for r in h], [r["q_c"] / 1e3 for r in h], label="micromorphic: run")
     s = results["restart"]["from_step"]
     ax.plot([r["depth"] * 1e3 for r in h[s:]], [r["q_c"] / 1e3 for r in h[s:]], "k.", ms=3,
             label=f"restart from step {s} ({results['restart']['bit_identical_steps']}/"
                   f"{results['restart']['steps_continued']} steps bit-identical)")
+    if results["micropolar"] is not None:
+        ax.plot([r["depth"] * 1e3 for r in h], [q / 1e3 for q in results["micropolar"]["q_c"]], color="0.6",
+                lw=0.8, label="micropolar continuum")
     ax.set_xlabel("pile depth [mm]")
     ax.set_ylabel("q_c [kPa]")
-    ax.set_title("micromorphic continuum coupled to the grains: pile")
+    ax.set_title("pile into grains coupled to a micromorphic continuum", fontsize=10)
     ax.legend(fontsize=8)
     series = results["stress_series"]
     depth = np.array([r["depth"] for r in series]) * 1e3
     colours = dict(zip(results["boxes"], ("C0", "C1", "C2"), strict=False))
+    styles = {"grains' s (seed 002)": dict(ls="-", marker="o", ms=3),
+              "grains' sigma (eq. 10-12)": dict(ls=":"),
+              "continuum's s": dict(ls="--", marker="s", ms=3),
+              "continuum's sigma": dict(ls="-.", lw=0.8),
+              "micropolar continuum's sigma": dict(ls="none", marker="x", ms=4)}
     for ax, key, sign, label in ((axes[0, 1], "p_s", -1.0, "mean stress -p [kPa] (compression > 0)"),
-                                 (axes[1, 0], "tau_s", 1.0, "octahedral shear tau of sym [kPa]")):
+                                 (axes[1, 0], "tau_s", 1.0, "octahedral shear of sym [kPa]")):
         sig = key.replace("_s", "_sigma")
         for name, c in colours.items():
             b = [r["boxes"][name] for r in series]
-            ax.plot(depth, [sign * r["grains"][key] / 1e3 for r in b], "-o", color=c, ms=3,
-                    label=f"{name}: grains' s")
-            ax.plot(depth, [sign * r["grains"][sig] / 1e3 for r in b], ":", color=c,
-                    label=f"{name}: grains' sigma (eq. 10-12)")
-            ax.plot(depth, [sign * r["continuum"][key] / 1e3 for r in b], "--s", color=c, ms=3,
-                    label=f"{name}: continuum's s")
-            ax.plot(depth, [sign * r["continuum"][sig] / 1e3 for r in b], "-.", color=c, lw=0.8,
-                    label=f"{name}: continuum's sigma")
+            for what, source, k in (("grains' s (seed 002)", "grains", key),
+                                    ("grains' sigma (eq. 10-12)", "grains", sig),
+                                    ("continuum's s", "continuum", key), ("continuum's sigma", "continuum", sig)):
+                ax.plot(depth, [sign * r[source][k] / 1e3 for r in b], color=c, **styles[what])
             if results["micropolar"] is not None:
                 mp = results["micropolar"]["series"]
                 ax.plot([r["depth"] * 1e3 for r in mp], [sign * r["boxes"][name]["continuum"][sig] / 1e3 for r in mp],
-                        "x", color=c, ms=4, label=f"{name}: micropolar continuum's sigma")
+                        color=c, **styles["micropolar continuum's sigma"])
         ax.set_xlabel("pile depth [mm]")
         ax.set_ylabel(label)
-        ax.legend(fontsize=6)
     ax = axes[1, 1]
     for name, c in colours.items():
-        ax.semilogy(depth, [r["boxes"][name]["grains"]["tau_couple"] for r in series], "-o", color=c, ms=3,
-                    label=f"{name}: grains")
-        ax.semilogy(depth, [max(r["boxes"][name]["continuum"]["tau_couple"], 1e-12) for r in series], "--s",
-                    color=c, ms=3, label=f"{name}: continuum")
+        ax.semilogy(depth, [r["boxes"][name]["grains"]["tau_couple"] for r in series], color=c,
+                    **styles["grains' s (seed 002)"])
+        ax.semilogy(depth, [max(r["boxes"][name]["continuum"]["tau_couple"], 1e-12) for r in series], color=c,
+                    **styles["continuum's s"])
     ax.set_xlabel("pile depth [mm]")
-    ax.set_ylabel("couple measure tau^c of m [Pa m]")
-    ax.legend(fontsize=6)
+    ax.set_ylabel("couple measure tau^c [Pa m]: grains' m (o), continuum's m (s)")
+    handles = [Line2D([], [], color=c, lw=3, label=name) for name, c in colours.items()]
+    handles += [Line2D([], [], color="k", label=what, **st) for what, st in styles.items()]
+    axes[0, 1].legend(handles=handles, fontsize=7, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -363,3 +363,25 @@ def test_coupled_micromorphic_pile_prescribes_the_fit_and_restarts_to_the_bit(co
     assert [h["q_c"] for h in again.history] == [h["q_c"] for h in cpt.history]
     assert np.array_equal(again.problem.w.x.array, cpt.problem.w.x.array)
     assert np.array_equal(again.sim.p.x, cpt.sim.p.x)
+
+
+@pytest.mark.mpi
+def test_moved_grains_refit_as_a_fresh_interface():
+    """update_positions moves the fit with the grains: the same values as an interface built
+    at the new positions (grains changing cells and, on 2 ranks, ranks)."""
+    p = problem(MPI.COMM_WORLD, 2, n=6)
+    rng = np.random.default_rng(6)
+    x = np.c_[rng.uniform(0, 1, (3000, 2)), np.zeros(3000)]
+    regions = CouplingRegions(Box((0.1, 0.1), (0.9, 0.9)), ghost_width=0.1, handshake=0.1)
+    kinds = regions.particle_kinds(x[:, :2])
+    x, kinds = x[kinds >= 0], kinds[kinds >= 0]
+    moved = x + np.c_[rng.normal(scale=0.01, size=(len(x), 2)), np.zeros(len(x))]
+    moved[:, :2] = np.clip(moved[:, :2], 1e-6, 1 - 1e-6)
+    iface = CouplingInterface(p, x, kinds, regions)
+    counts = iface.update_positions(moved)
+    assert counts["changed_cell"] + counts["changed_rank"] > 0
+    u = np.c_[np.sin(3 * moved[:, 0]) * moved[:, 1], np.cos(2 * moved[:, 1]), np.zeros(len(x))]
+    q = ContinuumProblem(p.domain, Micromorphic(material()), degree=(1, 1))
+    fresh = CouplingInterface(q, moved, kinds, regions)
+    assert np.array_equal(fresh.fields[1].prescribed, iface.fields[1].prescribed)
+    assert np.allclose(iface.project_micro_deformation(u), fresh.project_micro_deformation(u), rtol=0, atol=1e-12)
