@@ -89,7 +89,8 @@ class ContinuumBoxes:
             inside = np.all((mid >= np.asarray(lo)) & (mid <= np.asarray(hi)), axis=1)
             self.weights[name] = np.where(inside, vol, 0.0)
         self.n, self.exprs = n, {}
-        for key, expr in problem.stresses().items():
+        u = ufl.split(problem.w)[0]
+        for key, expr in (problem.stresses() | {"grad_u": ufl.grad(u)}).items():
             S = fem.functionspace(dom, ("Discontinuous Lagrange", 0, ufl.shape(expr)))
             self.exprs[key] = (fem.Expression(expr, S.element.interpolation_points), fem.Function(S))
 
@@ -105,19 +106,31 @@ class ContinuumBoxes:
         return out
 
 
+def strains(H) -> dict:
+    """Volumetric strain tr(H) and the magnitude |dev sym H| of a displacement gradient H."""
+    e = 0.5 * (np.asarray(H) + np.asarray(H).T)
+    return {"vol_strain": float(np.trace(e)), "dev_strain": float(np.linalg.norm(e - np.trace(e) / 3 * np.eye(3)))}
+
+
 def grain_measures(cpt, box_list) -> dict:
     """Seed 002's measures of the grains in each box (gravity in the body couple; the
-    accelerations are not kept by the run, so no micro-spin inertia)."""
+    accelerations are not kept by the run, so no micro-spin inertia), and the displacement
+    gradient of the free grains settled in the box (least-squares affine fit, from the
+    settled packing)."""
     from dem.stress import AveragingDomain, micromorphic_stress
 
     p = cpt.grain_state()
+    n, X = cpt.n_grains, cpt.x_ref
+    free = cpt.kinds == 0
     pairs, force = cpt.sim.contact_forces()
     g = np.array([0.0, 0.0, -cpt.prm.gravity])
     out = {}
     for name, (lo, hi, div) in box_list.items():
         m = micromorphic_stress(AveragingDomain(lo, hi, div), p.x, p.radius, pairs, force, p.mass,
                                 gravity=g, on_empty="zero")
-        out[name] = {"s": m.s, "sigma": m.sigma.T, "m": m.m, "sigma_G": m.sigma_G.T,
+        inside = free & np.all((X >= np.asarray(lo)) & (X <= np.asarray(hi)), axis=1)
+        fit = np.linalg.lstsq(np.c_[np.ones(inside.sum()), X[inside]], p.x[:n][inside] - X[inside], rcond=None)[0]
+        out[name] = {"s": m.s, "sigma": m.sigma.T, "m": m.m, "sigma_G": m.sigma_G.T, "grad_u": fit[1:].T,
                      "contacts": int(m.rve_contacts.sum()), "empty_rves": int((m.rve_contacts == 0).sum())}
     return out
 
@@ -155,12 +168,15 @@ def measured_push(prm, comm, log, every, checkpoint_at=None, where=None):
     cpt = CoupledPenetration(prm, comm, log=log)
     box_list = boxes(prm, float(cpt.x_ref[:, 2].max()))
     fe_boxes = ContinuumBoxes(cpt.problem, box_list)
-    series = []
+    series, start = [], {}
 
     def measure():
         grains, cont = grain_measures(cpt, box_list), fe_boxes.averages()
+        for name in box_list:   # the continuum's strain from the start (a 3D run starts geostatic)
+            start.setdefault(name, cont[name]["grad_u"])
         series.append({"step": len(cpt.history), "depth": cpt.depth, "boxes": {
-            name: {"grains": summary(grains[name]), "continuum": continuum_summary(cont[name]),
+            name: {"grains": summary(grains[name]) | strains(grains[name]["grad_u"]),
+                   "continuum": continuum_summary(cont[name]) | strains(cont[name]["grad_u"] - start[name]),
                    "grain_contacts": grains[name]["contacts"], "empty_rves": grains[name]["empty_rves"]}
             for name in box_list}})
         return grains, cont
@@ -268,7 +284,7 @@ def main():
             g, c = last[name]["grains"], last[name]["continuum"]
             log(f"{name}: p_s grains {g['p_s']:.4g} Pa, continuum {c['p_s']:.4g} Pa; p_sigma {g['p_sigma']:.4g} / "
                 f"{c['p_sigma']:.4g} Pa; tau_s {g['tau_s']:.4g} / {c['tau_s']:.4g} Pa; tau^c {g['tau_couple']:.3g} / "
-                f"{c['tau_couple']:.3g} Pa m")
+                f"{c['tau_couple']:.3g} Pa m; volumetric strain {g['vol_strain']:.3g} / {c['vol_strain']:.3g}")
         log(f"repeat identical: {repeat}; restart from step {start}: {int(sum(same))} of {len(same)} steps "
             f"bit-identical, final state identical: {same_state}; CPU s (all ranks): run {c1 - c0:.0f}, measured "
             f"{c2 - c1:.0f}, restart {c3 - c2:.0f}, micropolar {c4 - c3:.0f}; results in {args.results}")
@@ -281,7 +297,7 @@ def plot(results, path):
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
 
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    fig, axes = plt.subplots(2, 3, figsize=(17, 9))
     h = results["run"]["history"]
     ax = axes[0, 0]
     ax.plot([r["depth"] * 1e3 for r in h], [r["q_c"] / 1e3 for r in h], label="micromorphic: run")
@@ -326,7 +342,14 @@ def plot(results, path):
         ax.semilogy(depth, [max(r["boxes"][name]["continuum"]["tau_couple"], 1e-12) for r in series], color=c,
                     **styles["continuum's s"])
     ax.set_xlabel("pile depth [mm]")
-    ax.set_ylabel("couple measure tau^c [Pa m]: grains' m (o), continuum's m (s)")
+    ax.set_ylabel("tau^c of m [Pa m]: grains (o), continuum (s)")
+    for ax, key, label in ((axes[0, 2], "vol_strain", "volumetric strain (> 0: dilation)"),
+                           (axes[1, 2], "dev_strain", "|dev eps|")):
+        for name, c in colours.items():
+            ax.plot(depth, [r["boxes"][name]["grains"][key] for r in series], color=c, **styles["grains' s (seed 002)"])
+            ax.plot(depth, [r["boxes"][name]["continuum"][key] for r in series], color=c, **styles["continuum's s"])
+        ax.set_xlabel("pile depth [mm]")
+        ax.set_ylabel(label + ": grains' fit (o), continuum (s)")
     handles = [Line2D([], [], color=c, lw=3, label=name) for name, c in colours.items()]
     handles += [Line2D([], [], color="k", label=what, **st) for what, st in styles.items()]
     axes[0, 1].legend(handles=handles, fontsize=7, loc="lower left")
