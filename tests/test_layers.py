@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 FE_STACK = {"dolfinx", "dolfinx_solver", "ufl", "basix", "petsc4py", "ffcx", "adios4dolfinx"}
 # the bridging-scale method; every other module of coupling/ is an application or a tool
 # that serves applications (scenes, runner, command line)
-METHOD = {"__init__", "locate", "operators", "regions", "interface", "staggered", "dynamic",
+METHOD = {"__init__", "locate", "operators", "regions", "interface", "micro_kinematics", "staggered", "dynamic",
           "monolithic1d", "substep"}
 
 
