@@ -22,6 +22,7 @@ DEMOS = [
     ("demos/2d/mandel.py", True),
     ("demos/2d/micromorphic_shear_layer.py", True),
     ("demos/2d/grain_consolidation.py", False),
+    ("demos/2d/cptu_coupled.py", False),
     ("demos/2d/fe2_biaxial.py", True),
     ("demos/2d/coupled_punch.py", True),
     ("demos/2d/wave_through_overlap.py", True),

@@ -34,6 +34,15 @@ undrained. Readings per FE step: ``u1`` (the face, mid-height, a grain radius ou
 (the shoulder just above the cone, a grain radius out, CPTu's standard position) and
 ``u_max`` the largest excess pressure, from the solve at the step's start.
 
+Resolution: the pressure is unresolved at the grains' scale (a window node's support holds
+~10-20 grains) and the cone is a few elements wide, so the discrete divergence of the solid
+velocity misses the isochoric flow round the cone by O(v / R) over an element: an excess
+pressure of order ``(mu_f / k) (v / R) h^2``, the mesh's, not the soil's. It grows with V
+and falls with h (here faster than h^2): in the loose scene at V ~ 1, u2 read 13.9 / 1.9 /
+0.6 kPa with 8 / 6 / 5 mm elements (R = 10 mm; means over depths 20-30 mm, one packing,
+the fast run of demos/2d/cptu_coupled.py). Readings are credible where that error is below
+the effective stress (here V up to ~1 with 5 mm elements); at V ~ 30 it dominates.
+
 2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
 """
 

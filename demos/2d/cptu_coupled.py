@@ -1,0 +1,173 @@
+"""Saturated coupled cone penetration (2D CPTu): the pore pressure behind the cone (u2)
+against depth at two push rates, drained, undrained and dry.
+
+This demo shows how to:
+
+- run the coupled cone penetration of ``scenes/cptu_2d.toml`` (a loose, contractive window
+  of disks inside a micropolar FE chamber) saturated: one Darcy pore pressure over the whole
+  chamber, its source the grains' (and the cone's) volumetric change in the window and the
+  continuum's outside, acting on the free grains (`coupling.apps.penetration.saturated`),
+- read the excess pore pressure at the shoulder just above the cone (u2, as CPTu standards
+  place the filter) and on the face (u1), the grains' tip resistance q_c (effective) and
+  the total q_t = q_c + the pore pressure's push on the cone,
+- set the drainage by the normalised velocity V = v d / c_v (c_v = k M / mu_f, M the
+  packing's constrained modulus; drained below ~0.3, undrained above ~30: Randolph & Hope
+  2004, DeJong & Randolph 2012), at two push rates of one permeability, a drained and an
+  undrained permeability at the fast rate, and the dry run beside,
+- write ``results.json`` and ``cptu_coupled.png`` (u2 and q_c against depth) to ``--out``.
+
+Run: ``NUMBA_NUM_THREADS=1 python demos/2d/cptu_coupled.py`` (one core: 11 min wall on a
+shared machine; CPU 10 s set-up and 90-150 s push a saturated run, the fluid solved every DEM
+step); ``GRANFE_SHORT=1``: a small window and cone (the tests' scene), dry, drained and
+undrained only, ~1 min. The continuum is drained as far as its mechanics go (the dry
+micropolar model; its pressure is the fixed-stress estimate from its volumetric strain),
+and the pressure round the cone is not mesh-converged (largest at V ~ 30): see the module
+docstring of `coupling.apps.penetration.saturated`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import dolfinx_solver  # noqa: F401
+from mpi4py import MPI
+
+import numpy as np
+
+from coupling.apps.penetration.coupled import CoupledPenetration
+from coupling.apps.penetration.penetrators import filtered, tip_height
+from coupling.apps.penetration.saturated import SaturatedPenetration
+from coupling.scene import load_scene
+
+SHORT = os.environ.get("GRANFE_SHORT") == "1"
+
+# ---- parameters (SI, per unit thickness) ------------------------------------------------------
+parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+parser.add_argument("--scene", type=Path, default=Path("scenes/cptu_2d.toml"))
+parser.add_argument("--depth", type=float, default=0.012 if SHORT else 0.03, help="push [m]")
+parser.add_argument("--fast", type=float, default=0.2, help="fast push rate [m/s]")
+parser.add_argument("--slow", type=float, default=0.1, help="slow push rate [m/s]")
+parser.add_argument("--k", type=float, default=3e-11, help="the two rates' permeability [m^2]")
+parser.add_argument("--k-drained", type=float, default=3e-9, help="drained permeability [m^2]")
+parser.add_argument("--k-undrained", type=float, default=3e-13 if SHORT else 9e-13,
+                    help="undrained permeability [m^2]")
+parser.add_argument("--out", type=Path, default=Path("output/cptu_coupled"))
+args = parser.parse_args()
+comm = MPI.COMM_WORLD
+
+
+def log(msg):
+    if comm.rank == 0:
+        print(msg, flush=True)
+
+
+# short: a window of ~420 grains, a cone of 3 grain diameters, the DEM step at 0.2 of critical
+SMALL = {"chamber": {"width": 0.16, "depth": 0.12, "element_size_window": 0.008, "element_size_far": 0.03},
+         "grains": {"settle_time": 0.15}, "window": {"half_width": 0.025, "depth": 0.045, "handshake": 1.0},
+         "penetrator": {"radius": 0.0045}, "coupling": {"dt_factor": 4.0}}
+scene = load_scene(args.scene, SMALL if SHORT else None)
+prm0 = replace(scene.parameters(), depth=args.depth)
+fluid0 = scene.fluid_parameters()
+runs = {"dry": (None, args.fast),
+        "drained": (args.k_drained, args.fast),
+        "fast": (args.k, args.fast),
+        "undrained": (args.k_undrained, args.fast),
+        "slow": (args.k, args.slow)}
+if SHORT:
+    del runs["fast"], runs["slow"]
+
+
+# ---- runs ---------------------------------------------------------------------------------------
+def run(name, k, v):
+    """One push; returns its record (figures and the depth profiles)."""
+    prm = replace(prm0, velocity=v)
+    t0 = time.process_time()
+    if k is None:
+        cpt = CoupledPenetration(prm, comm, log=lambda m: None)
+    else:
+        cpt = SaturatedPenetration(prm, replace(fluid0, permeability=k), comm, log=lambda m: None)
+    t_setup = time.process_time() - t0
+    t0 = time.process_time()
+    history = cpt.run()
+    cpu = time.process_time() - t0
+    window = 2 * prm.cone_radius       # the profiles averaged over one cone diameter
+    # u2's filter position is embedded once the shoulder is a grain radius below the surface
+    embedded = tip_height(prm) + 2 * prm.radius
+    rec = {"k": k, "velocity": v, "cpu_setup_s": t_setup, "cpu_push_s": cpu,
+           "depth": [h["depth"] for h in history],
+           "q_c": filtered(history, "q_c", window).tolist()}
+    deep = np.array(rec["depth"]) > max(embedded, 0.5 * prm.depth)
+    rec["q_c_mean"] = float(np.mean(np.array([h["q_c"] for h in history])[deep]))
+    if k is not None:
+        s = cpt.summary()
+        rec.update(c_v=s["c_v"], V=s["V"], porosity=s["porosity_window"], fluid_wall_s=s["fluid_time_s"],
+                   constrained_modulus=s["constrained_modulus"])
+        for key in ("u1", "u2", "q_t", "q_u", "u_max"):
+            rec[key] = filtered(history, key, window).tolist()
+            rec[f"{key}_mean"] = float(np.mean(np.array([h[key] for h in history])[deep]))
+    log(f"{name:9s} v = {v:5.3f} m/s" + (f", k = {k:.2g} m^2, V = {rec['V']:6.3g}" if k else " (dry)")
+        + f": q_c {rec['q_c_mean'] / 1e3:6.2f} kPa"
+        + (f", q_t {rec['q_t_mean'] / 1e3:7.2f} kPa, u2 {rec['u2_mean'] / 1e3:7.2f} kPa, "
+           f"u1 {rec['u1_mean'] / 1e3:7.2f} kPa" if k else "")
+        + f" (CPU {t_setup:.0f} s set-up, {cpu:.0f} s push)")
+    return rec
+
+
+t_start = time.perf_counter()
+results = {name: run(name, k, v) for name, (k, v) in runs.items()}
+wall = time.perf_counter() - t_start
+
+
+# ---- outputs ------------------------------------------------------------------------------------
+def figure(path):
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 5.5), sharey=True)
+    for name, rec in results.items():
+        d = 100 * np.array(rec["depth"])
+        label = name if rec["k"] is None else f"{name}: v {rec['velocity']} m/s, V = {rec['V']:.2g}"
+        a2.plot(np.array(rec["q_c"]) / 1e3, d, label=label)
+        if rec["k"] is not None:
+            line, = a1.plot(np.array(rec["u2"]) / 1e3, d, label=label)
+            a2.plot(np.array(rec["q_t"]) / 1e3, d, ls="--", color=line.get_color(), lw=0.8)
+    a1.axvline(0, color="0.6", lw=0.5)
+    a1.axhline(100 * (tip_height(prm0) + 2 * prm0.radius), color="0.6", ls=":", lw=0.8)
+    a1.set_xscale("symlog", linthresh=1.0)
+    a2.set_xscale("symlog", linthresh=1.0)
+    a1.set_xlabel("u2, excess pore pressure at the shoulder [kPa]")
+    a2.set_xlabel("q_c (solid: grains) and q_t (dashed: + pore pressure) [kPa]")
+    a1.set_ylabel("depth of the cone tip [cm]")
+    a1.invert_yaxis()
+    a1.legend(fontsize=7, loc="lower right")
+    a2.legend(fontsize=7, loc="lower right")
+    a1.set_title("averaged over one cone diameter; dotted: shoulder embedded", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if comm.rank == 0:
+    args.out.mkdir(parents=True, exist_ok=True)
+    summary = {name: {k: v for k, v in rec.items() if not isinstance(v, list)} for name, rec in results.items()}
+    (args.out / "results.json").write_text(json.dumps(
+        {"scene": str(args.scene), "depth": args.depth, "short": SHORT, "wall_s": wall,
+         "runs": results, "summary": summary}, indent=1))
+    figure(args.out / "cptu_coupled.png")
+    log(f"{wall:.0f} s wall; outputs in {args.out}")
+
+# ---- checks -------------------------------------------------------------------------------------
+for name, rec in results.items():
+    assert all(np.isfinite(rec["q_c"])), name
+    if rec["k"] is not None:
+        assert all(np.isfinite(rec["u2"])), name
+wet = [r for r in results.values() if r["k"] is not None]
+# the drained run drains (V < 0.3) and the undrained one does not (V > 30)
+assert results["drained"]["V"] < 0.3 < 30 < results["undrained"]["V"]
+# contractive: the undrained excess pressure behind the cone is positive and above the drained one
+assert results["undrained"]["u2_mean"] > results["drained"]["u2_mean"]
+assert results["undrained"]["u2_mean"] > 0
