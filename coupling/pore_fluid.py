@@ -81,7 +81,7 @@ from dem.state import FREE
 from granfe.problem import Where, boundary_facets
 from granfe.solvers import check_ksp_converged
 
-__all__ = ["DarcyFlow", "PoreFluidParameters", "kozeny_carman", "grain_volumes"]
+__all__ = ["DarcyFlow", "GrainSpace", "PoreFluidParameters", "kozeny_carman", "grain_volumes"]
 
 
 @dataclass(frozen=True)
@@ -231,7 +231,7 @@ class DarcyFlow:
         pdeg = params.pressure_degree
         # one basis at the grains for the scalar and the vector fields (the vector space is
         # the scalar one blocked: component c of dof a is local entry a * gdim + c)
-        self._grains = _GrainSpace(domain, basix.ufl.element(fam, cell, deg))
+        self._grains = GrainSpace(domain, basix.ufl.element(fam, cell, deg))
         self.Vn = self._grains.V
         self.Vv = fem.functionspace(domain, basix.ufl.element(fam, cell, deg, shape=(gdim,)))
         if not np.array_equal(self.Vv.dofmap.list, self.Vn.dofmap.list):
@@ -578,7 +578,7 @@ class DarcyFlow:
             done += m
 
 
-class _GrainSpace:
+class GrainSpace:
     """A scalar DG0/P1 space whose basis N is evaluated at the grains' centroids, acting on
     it and on its blocked vector space (N applied per component). N is kept as its rows:
     the (m, nd) dofs of each grain's cell and the basis values there (the products are a

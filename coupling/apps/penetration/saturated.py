@@ -63,7 +63,7 @@ from coupling.apps.penetration.fluid import FluidParameters
 from coupling.apps.penetration.parameters import VERTICAL
 from coupling.apps.penetration.penetrators import tip_height
 from coupling.locate import locate_owned, owner_ranks, relocate
-from coupling.pore_fluid import DarcyFlow, PoreFluidParameters, _GrainSpace
+from coupling.pore_fluid import DarcyFlow, GrainSpace, PoreFluidParameters
 from dem.drag import group_means
 
 __all__ = ["ChamberFlow", "SaturatedPenetration", "FluidParameters"]
@@ -299,7 +299,7 @@ class _Tracked:
 
     def __init__(self, domain, element, maps):
         self.domain, self.maps = domain, maps
-        self.space = _GrainSpace(domain, element)
+        self.space = GrainSpace(domain, element)
         self.mine = None
 
     def locate(self, x: np.ndarray) -> np.ndarray:
