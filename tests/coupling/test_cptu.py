@@ -21,7 +21,7 @@ from dolfinx import fem
 from coupling.apps.penetration.coupled import CoupledPenetration
 from coupling.apps.penetration.penetrators import tip_height
 from coupling.apps.penetration.run import _set_up
-from coupling.apps.penetration.saturated import SaturatedPenetration
+from coupling.apps.penetration.saturated import ChamberFlow, SaturatedPenetration
 from coupling.scene import SceneError, load_scene
 from granfe.probe import probe
 
@@ -184,6 +184,22 @@ def test_u2_is_positive_in_a_contractive_window_and_smaller_at_a_slow_push(fast)
     u_fast, u_slow = u2(cpt), u2(slow)
     assert u_fast > 0
     assert u_slow < u_fast
+
+
+def test_a_chambers_surcharge_stays_beside_the_fluids_forces(fast):
+    """The DEM holds one set of external forces: a chamber's surcharge on its top grains, set
+    before the fluid, is handed back with the fluid's forces at every fluid step."""
+    cpt, _ = fast
+    sim = cpt.sim
+    top = np.flatnonzero(sim.p.kind[:cpt.n_grains] == 0)[:5]
+    load = np.tile([0.0, -0.3, 0.0], (5, 1))
+    sim.set_external_force(top, load)
+    flow = ChamberFlow(cpt, cpt.fluid)
+    flow.step(cpt.fluid.every * sim.dt)
+    rows, f = sim.external_force()
+    at = np.searchsorted(rows, top)
+    assert np.array_equal(rows[at], top)
+    np.testing.assert_allclose(f[at], flow.forces[top] + load, rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.mpi

@@ -108,6 +108,10 @@ class ChamberFlow(DarcyFlow):
         super().__init__(problem.domain, cpt.sim, params, facet_tags=problem.facet_tags,
                          tag_names=problem.tag_names, particles=cpt.n_grains)
         self.drained("top")
+        rows, f = cpt.sim.external_force()   # a chamber's surcharge on its top grains: kept
+        if len(rows):                        # (the DEM holds one set of external forces)
+            self.extra_force = np.zeros((cpt.sim.p.n, 3))
+            self.extra_force[rows] = f
         domain, gdim = self.domain, 2
         self.weight = fem.Function(self.Vn, name="grain_weight")
         self.weight.x.array[:] = self._grain_weight(self.Vn.tabulate_dof_coordinates()[:, :gdim])
