@@ -189,7 +189,8 @@ def _curves(history, path):
     import matplotlib.pyplot as plt
 
     depth = np.array([h["depth"] for h in history]) * 100
-    fig, axes = plt.subplots(1, 3, figsize=(10, 5), sharey=True)
+    wet = "u2" in history[0]   # (a saturated run: u2 beside)
+    fig, axes = plt.subplots(1, 4 if wet else 3, figsize=(13 if wet else 10, 5), sharey=True)
     for ax, key, label in ((axes[0], "q_c", "tip resistance q_c [kPa]"),
                            (axes[1], "f_s", "sleeve friction f_s [kPa]")):
         ax.plot([h[key] / 1e3 for h in history], depth, color="0.7", lw=0.8, label="raw")
@@ -202,6 +203,11 @@ def _curves(history, path):
         rf = [100 * h["f_s_filtered"] / h["q_c_filtered"] if h["q_c_filtered"] > 0 else np.nan for h in history]
         axes[2].plot(rf, depth)
     axes[2].set_xlabel("friction ratio f_s / q_c [%]")
+    if wet:
+        axes[3].plot([h["u2"] / 1e3 for h in history], depth, color="0.7", lw=0.8)
+        if "u2_filtered" in history[0]:
+            axes[3].plot([h["u2_filtered"] / 1e3 for h in history], depth, color="C0")
+        axes[3].set_xlabel("pore pressure behind the cone u2 [kPa]")
     axes[0].set_ylabel("depth [cm]")
     axes[0].invert_yaxis()
     fig.tight_layout()
