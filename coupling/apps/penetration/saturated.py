@@ -133,7 +133,9 @@ class ChamberFlow(DarcyFlow):
         solid = self._work("solid", self.Vn).x.array
         owned = self.Vn.dofmap.index_map.size_local
         inner = w[:owned] >= 1.0
-        #: the continuum's porosity: the window's mean, over its fully weighted (owned) nodes
+        #: the continuum's porosity: the mean over the fully weighted (owned) nodes, water above
+        #: a window that settled below the ghosts' top included (an upper bound; it enters
+        #: only the continuum's storage n beta_f, next to its (1 - w) / K)
         self.n0 = float(1.0 - domain.comm.allreduce(float(solid[:owned][inner].sum()))
                         / domain.comm.allreduce(float(self.lumped_mass[:owned][inner].sum())))
         self._cone_sums = (np.zeros_like(w), np.zeros((len(w), gdim)))
