@@ -43,6 +43,12 @@ and falls with h (here faster than h^2): in the loose scene at V ~ 1, u2 read 13
 the fast run of demos/2d/cptu_coupled.py). Readings are credible where that error is below
 the effective stress (here V up to ~1 with 5 mm elements); at V ~ 30 it dominates.
 
+The permeability is the scene's everywhere outside the cone, also where the window holds no
+grains: a window that settled below its ghosts' top (the loose scene, by ~1 cm) has water
+above its grains inside the mesh, which the fluid treats as soil of permeability k (a
+Kozeny-Carman k(n) would free it, and amplify the porosity's scatter ~n^3 in the grains).
+The cone starts in that layer, so u2 reads pressure before the shoulder reaches the grains.
+
 2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
 """
 
