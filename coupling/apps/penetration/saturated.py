@@ -44,10 +44,12 @@ the fast run of demos/2d/cptu_coupled.py). Readings are credible where that erro
 the effective stress (here V up to ~1 with 5 mm elements); at V ~ 30 it dominates.
 
 The permeability is the scene's everywhere outside the cone, also where the window holds no
-grains: a window that settled below its ghosts' top (the loose scene, by ~1 cm) has water
-above its grains inside the mesh, which the fluid treats as soil of permeability k (a
-Kozeny-Carman k(n) would free it, and amplify the porosity's scatter ~n^3 in the grains).
-The cone starts in that layer, so u2 reads pressure before the shoulder reaches the grains.
+grains: a window that settled below its ghosts' top (scenes/cptu_2d.toml's loose one by 19
+mm, the dense cpt_2d.toml by 3 mm) has water above its grains inside the mesh, which the
+fluid treats as soil of permeability k (a Kozeny-Carman k(n) would free it, and amplify the
+porosity's scatter ~n^3 in the grains). The cone starts in that layer, so u2 reads pressure
+before the shoulder reaches the grains (after ~20 mm of push in the loose scene), and the
+drainage up through the layer is the soil's, slower than free water's.
 
 2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
 """
