@@ -49,7 +49,12 @@ mm, the dense cpt_2d.toml by 3 mm) has water above its grains inside the mesh, w
 fluid treats as soil of permeability k (a Kozeny-Carman k(n) would free it, and amplify the
 porosity's scatter ~n^3 in the grains). The cone starts in that layer, so u2 reads pressure
 before the shoulder reaches the grains (after ~20 mm of push in the loose scene), and the
-drainage up through the layer is the soil's, slower than free water's.
+drainage up through the layer is the soil's, slower than free water's. That layer makes most
+of the loose scene's u2: with k x 1000 at the window's nodes without grains (a scratch run,
+not in the code), u2 over 20-30 mm of push fell from 0.66 / 0.24 kPa to 0.004 / 0.03 kPa at
+V = 0.96 / 0.48 (the shoulder is then < 1 cm below the grains' surface: drained), q_t from
+3.2 / 1.7 to 3.5 / 2.5 kPa. Next: free water there, and a window deep enough for the
+shoulder to sit a few cone diameters in the grains.
 
 2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
 """
