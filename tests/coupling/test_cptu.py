@@ -6,7 +6,8 @@ Tolerances: exactness (1e-8 of the stored-fluid rate) for the mass balance throu
 drained surface (the weak form tested with q = 1: nothing but round-off and the direct
 solve); the rest are signs and orderings of physics (a contractive window pushed at two
 rates), each measured with a margin: u2 at the shoulder 1.22 kPa at V = 1.54 (0.2 m/s)
-against 0.39 kPa at V = 0.77 (0.1 m/s); serial == 2 ranks to 1e-8 (the fluid's step before
+against 0.39 kPa at V = 0.77 (0.1 m/s; much of it the water above the settled grains, which
+the fluid treats as soil: coupling/apps/penetration/saturated.py); serial == 2 ranks to 1e-8 (the fluid's step before
 any grain moves: pushed, the runs part as chaotic packings do). CPU ~25 s for the file.
 """
 
