@@ -74,6 +74,11 @@ class GeneralizedAlpha:
             raise ValueError(f"dt (time step) must be a positive number in s, got {dt!r}")
         if tangent not in ("elastic", "consistent"):
             raise ValueError(f"tangent must be 'elastic' or 'consistent', got {tangent!r}")
+        if hasattr(problem.model, "evaluate_points"):
+            raise ValueError(f"the {problem.model.name} model returns at the quadrature points "
+                             "of the current fields; generalized-alpha's residual is at mid-point "
+                             "fields: step it with granfe.explicit.CentralDifference or quasi-"
+                             "statically")
         self.problem = problem
         self.params = p = AlphaParameters(rho_inf)
         self.t = 0.0

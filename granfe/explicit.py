@@ -302,6 +302,8 @@ class _FormForces:
         pass
 
     def residual(self, b: PETSc.Vec, commit: bool) -> None:
+        if hasattr(self.problem.model, "evaluate_points"):
+            self.problem.model.evaluate_points(self.problem)    # its return, at these fields
         if commit and self.problem.state:
             self.problem.state.commit()
         _assemble_into(b, self.form)

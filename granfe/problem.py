@@ -444,8 +444,23 @@ class ContinuumProblem:
         nullspace = None
         if self.solver_kind == "iterative":
             nullspace = rigid_modes_nullspace(self.V, self.model.rigid_modes(self.gdim))
-        return make_snes_problem(F, self.w, self.bcs, prefix, self.petsc_options,
-                                 near_nullspace=nullspace, jit_options=self.jit_options)
+        nlp = make_snes_problem(F, self.w, self.bcs, prefix, self.petsc_options,
+                                near_nullspace=nullspace, jit_options=self.jit_options)
+        if hasattr(self.model, "evaluate_points"):
+            # a model whose return runs at the points (not in UFL): evaluate them at the
+            # fields of every residual, before it is assembled
+            from dolfinx.fem.petsc import assemble_residual, assign
+
+            ctx = {"u": self.w, "residual": nlp.F, "jacobian": nlp.J, "bcs": self.bcs}
+
+            def residual(snes, x, b):
+                x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+                assign(x, self.w)
+                self.model.evaluate_points(self)
+                assemble_residual(snes, x, b, **ctx)
+
+            nlp.solver.setFunction(residual, nlp.b)
+        return nlp
 
     @property
     def jit_options(self) -> dict | None:

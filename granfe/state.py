@@ -54,28 +54,33 @@ class QuadratureState:
     def bind(self, trial: dict, jit_options: dict | None = None) -> None:
         """The UFL expressions of the trial state (from the model's ``state_update``), all
         components in one expression: the variables share the return mapping, which one
-        expression each computed again (4x the time for Drucker-Prager's four)."""
+        expression each computed again (4x the time for Drucker-Prager's four). A variable
+        whose expression is None is written by the model itself (a return computed at the
+        points, not in UFL: ``evaluate_points``)."""
         if set(trial) != set(self.committed):
             raise ValueError(f"state_update returns {sorted(trial)}, the model declares "
                              f"{sorted(self.committed)}")
         components = []
-        for name in self.trial:                  # the order evaluate() reads them back
+        self._evaluated = [name for name in self.trial if trial[name] is not None]
+        for name in self._evaluated:             # the order evaluate() reads them back
             expr = trial[name]
             shape = ufl.shape(expr)
             components += [expr[i] for i in np.ndindex(shape)] if shape else [expr]
+        if not components:                       # the model fills its state itself
+            return
         points = next(iter(self.trial.values())).function_space.element.interpolation_points
         self._expression = fem.Expression(ufl.as_vector(components), points, jit_options=jit_options)
 
     def evaluate(self) -> None:
         """The trial state of the current fields, at every quadrature point of the owned
         cells, then the ghost cells' from their owners (collective)."""
-        if self._expression is None:                 # no variables (an elastic model)
+        if self._expression is None:     # no variables (an elastic model), or the model's own
             return
         tdim = self.domain.topology.dim
         cells = np.arange(self.domain.topology.index_map(tdim).size_local, dtype=np.int32)
         values = self._expression.eval(self.domain, cells).reshape(len(cells), -1, self._expression.value_size)
         start = 0
-        for f in self.trial.values():
+        for f in (self.trial[name] for name in self._evaluated):
             bs = f.function_space.dofmap.index_map_bs
             dofs = f.function_space.dofmap.list[:len(cells)]        # (cells, points)
             f.x.array.reshape(-1, bs)[dofs.ravel()] = values[:, :, start:start + bs].reshape(-1, bs)

@@ -9,13 +9,14 @@ from granfe.models.drucker_prager import MicropolarDruckerPrager
 from granfe.models.micromorphic import Micromorphic
 from granfe.models.micromorphic_drucker_prager import MicromorphicDruckerPrager
 from granfe.models.micromorphic_finite import MicromorphicFiniteStrain
+from granfe.models.micromorphic_iterative import MicromorphicDruckerPragerIterative
 from granfe.models.micropolar import Micropolar
 from granfe.models.poroelastic import MicropolarPoroelastic, Poroelastic
 from granfe.models.quadrature_stress import QuadratureStress
 from granfe.models.strain_memory import StrainMemory
 
 __all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micromorphic", "MicromorphicDruckerPrager",
-           "MicromorphicFiniteStrain",
+           "MicromorphicDruckerPragerIterative", "MicromorphicFiniteStrain",
            "Micropolar", "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "QuadratureStress",
            "StrainMemory"]
 
@@ -26,6 +27,7 @@ MODELS: dict[str, type[ContinuumModel]] = {
     Micromorphic.name: Micromorphic,
     MicromorphicFiniteStrain.name: MicromorphicFiniteStrain,
     MicromorphicDruckerPrager.name: MicromorphicDruckerPrager,
+    MicromorphicDruckerPragerIterative.name: MicromorphicDruckerPragerIterative,
     Poroelastic.name: Poroelastic,
     MicropolarPoroelastic.name: MicropolarPoroelastic,
     QuadratureStress.name: QuadratureStress,

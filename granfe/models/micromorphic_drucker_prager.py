@@ -35,9 +35,10 @@ times the identity (the other ten taus zero) the energy splits into the three le
 isotropic in its own measure (macro ``G = mu, K = lam + 2 mu / 3``; micro ``G = (kappa + nu)
 / 2, K = eta + (kappa + nu) / 3``; each higher-order slice ``G = tau7 / 2, K = tau7 / 3``), so
 every return is the radial one of classical Drucker-Prager, closed form in UFL, and SNES
-gets the consistent tangent from ``ufl.derivative``. The material checks those moduli; a
-coupled set (D or the other taus) needs an iterative return over all levels at once (not
-here). Plane strain keeps the out-of-plane components of the plastic parts (3 x 3).
+gets the consistent tangent from ``ufl.derivative``. The model checks those moduli; a
+coupled set (D or the other taus) needs an iterative return over all levels at once:
+:mod:`granfe.models.micromorphic_iterative` (the same material, the return at the points).
+Plane strain keeps the out-of-plane components of the plastic parts (3 x 3).
 
 Quadrature-point state: ``plastic_strain`` (3 x 3), ``plastic_micro_strain`` (3 x 3,
 symmetric), ``plastic_micro_gradient`` (gdim x 3 x 3, ``[M, k, l] = G_p_klM``),
@@ -112,8 +113,9 @@ class MicromorphicDruckerPragerMaterial:
     """Micromorphic elasticity with a Drucker-Prager cone on each level (None: elastic).
 
     Attributes:
-        elastic: the 18 moduli; ``tau = sigma = 0`` and only ``tau7`` of the taus nonzero
-            (decoupled levels, module docstring).
+        elastic: the 18 moduli (the closed-form model needs ``tau = sigma = 0`` and only
+            ``tau7`` of the taus nonzero: decoupled levels, module docstring; the iterative
+            model, :mod:`granfe.models.micromorphic_iterative`, takes any).
         macro: cone of the macro stress ``S`` [Pa].
         micro: cone of the symmetric relative stress ``sym(s - sigma)`` [Pa].
         gradient: cone of each slice ``m_..M`` of the higher-order stress [Pa m].
@@ -127,12 +129,6 @@ class MicromorphicDruckerPragerMaterial:
     def __post_init__(self):
         if not isinstance(self.elastic, MicromorphicMaterial):
             raise TypeError("MicromorphicDruckerPragerMaterial.elastic must be a MicromorphicMaterial")
-        e = self.elastic
-        coupled = [k for k in ("tau", "sigma") + _ZERO_TAUS if getattr(e, k) != 0.0]
-        if coupled:
-            raise ValueError(f"MicromorphicDruckerPragerMaterial.elastic: {', '.join(coupled)} "
-                             "must be 0 (the closed-form returns need decoupled levels: D = 0, "
-                             "C = tau7 I)")
         for level in LEVELS:
             cone = getattr(self, level)
             if cone is not None and not isinstance(cone, Cone):
@@ -141,6 +137,15 @@ class MicromorphicDruckerPragerMaterial:
     @property
     def active(self) -> tuple[str, ...]:
         return tuple(level for level in LEVELS if getattr(self, level) is not None)
+
+
+def _check_decoupled(material) -> None:
+    coupled = [k for k in ("tau", "sigma") + _ZERO_TAUS if getattr(material.elastic, k) != 0.0]
+    if coupled:
+        raise ValueError(f"MicromorphicDruckerPragerMaterial.elastic: {', '.join(coupled)} "
+                         "must be 0 for the closed-form returns (decoupled levels: D = 0, "
+                         "C = tau7 I); the micromorphic_drucker_prager_iterative model returns "
+                         "at the points for any moduli")
 
 
 def cone_return(dev_tr, p_tr, G, K, A, B, k0, H, eq):
@@ -202,11 +207,13 @@ class MicromorphicDruckerPrager(Micromorphic):
     def __init__(self, material):
         super().__init__(material)
         self.active = material.active
+        _check_decoupled(material)
 
     def update(self, material) -> None:
         if isinstance(material, self.material_type) and material.active != self.active:
             raise ValueError(f"the plastic levels are fixed when the forms are built: "
                              f"{self.active}, the new material has {material.active}")
+        _check_decoupled(material)
         super().update(material)
 
     def constant_values(self, material):

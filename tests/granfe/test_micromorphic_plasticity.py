@@ -311,6 +311,7 @@ def test_coupled_moduli_are_refused():
     from dataclasses import replace
 
     with pytest.raises(ValueError, match="sigma, tau8 must be 0"):
-        MicromorphicDruckerPragerMaterial(replace(ELASTIC, sigma=1e5, tau8=1.0), Cone(C, 30.0))
+        MicromorphicDruckerPrager(MicromorphicDruckerPragerMaterial(
+            replace(ELASTIC, sigma=1e5, tau8=1.0), Cone(C, 30.0)))
     with pytest.raises(ValueError, match="levels are fixed"):
         MicromorphicDruckerPrager(material()).update(material(gradient=None))
