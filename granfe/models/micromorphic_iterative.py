@@ -37,7 +37,7 @@ import ufl
 from dolfinx import fem
 
 from granfe.models.micromorphic import Micromorphic, strains
-from granfe.models.micromorphic_drucker_prager import LEVELS, Cone, MicromorphicDruckerPragerMaterial
+from granfe.models.micromorphic_drucker_prager import LEVELS, MicromorphicDruckerPragerMaterial
 from granfe.models.micromorphic_return import LEVEL_COUNT, NX, point_return, stiffness
 
 __all__ = ["MicromorphicDruckerPragerIterative", "measure_indices"]
@@ -70,17 +70,12 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
 
     def __init__(self, material):
         super().__init__(material)
-        self.active = material.active
         self._measures: fem.Expression | None = None
-
-    def update(self, material) -> None:
-        if isinstance(material, self.material_type) and material.active != self.active:
-            raise ValueError(f"the plastic levels are fixed when the forms are built: "
-                             f"{self.active}, the new material has {material.active}")
-        super().update(material)
 
     def constant_values(self, material):
         values = super().constant_values(material.elastic)
+        # the kernel's tables, rebuilt on every update: unlike the closed-form model's forms,
+        # nothing compiled depends on which levels are plastic
         self._tables(material)             # after bind: gdim is known (the slices it has)
         return values
 
@@ -93,7 +88,6 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
             cone = getattr(material, LEVELS[min(i, 2)])
             if cone is None or i >= 2 + (self.gdim or 3):
                 continue
-            assert isinstance(cone, Cone)
             self.cones[i] = (*cone.constants, cone.hardening)
             self.has_cone[i] = True
 

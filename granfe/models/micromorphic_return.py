@@ -85,6 +85,8 @@ def _basis() -> np.ndarray:
 _Q = _basis()
 _PSYM = _Q[:, :6] @ _Q[:, :6].T          # the symmetric part of a 3 x 3 (row-major)
 _PDEV = np.eye(9) - np.outer(_VEC_I, _VEC_I) / 3.0
+# each level's projection onto its yield stress: the symmetric part, or all of the block
+_PROJ = np.stack([_PSYM if sym else np.eye(9) for sym in _SYMMETRIC])
 
 
 def _stresses_of(x: np.ndarray, material) -> np.ndarray:
@@ -150,7 +152,7 @@ def _invariants(t):
 
 
 @numba.njit(cache=True)
-def _system(z, x, K, xp_old, eq_old, cones, modes, dims, offsets, Q, PSYM, PDEV, VEC_I, SYM):
+def _system(z, x, K, xp_old, eq_old, cones, modes, dims, offsets, Q, PROJ, PDEV, VEC_I, SYM):
     """Residual R (nz,), its Jacobian J (nz, nz), dR/dy at fixed z (nz, 45), dy/dz (45, nz),
     the stress y and the plastic measures xp of unknowns z."""
     nz = z.size
@@ -175,7 +177,7 @@ def _system(z, x, K, xp_old, eq_old, cones, modes, dims, offsets, Q, PSYM, PDEV,
         o, d = offsets[i], dims[i]
         lam = o + d                                   # the multiplier's index
         A, B, k0, H = cones[i, 0], cones[i, 1], cones[i, 2], cones[i, 3]
-        P = PSYM if SYM[i] else np.eye(9)
+        P = PROJ[i]
         QdT = np.ascontiguousarray(Q[:, :d].T)
         t = _level_stress(y, i, SYM[i])
         p, dev, tau = _invariants(t)
@@ -243,7 +245,7 @@ def _merit(R, modes, dims, offsets, moduli):
 
 
 @numba.njit(cache=True)
-def _newton(x, K, xp_old, eq_old, cones, modes, dims, a0, l0, moduli, Q, PSYM, PDEV, VEC_I, SYM,
+def _newton(x, K, xp_old, eq_old, cones, modes, dims, a0, l0, moduli, Q, PROJ, PDEV, VEC_I, SYM,
             scale, tol, max_it):
     """Newton, from the levels' predicted unknowns (a0, l0), on the unknowns of the levels in
     ``modes``, with backtracking on the residual (a full step may jump a cone's deviator
@@ -260,7 +262,7 @@ def _newton(x, K, xp_old, eq_old, cones, modes, dims, a0, l0, moduli, Q, PSYM, P
             z[offsets[i]: offsets[i] + dims[i]] = a0[i, : dims[i]]
             z[offsets[i] + dims[i]] = l0[i]
     R, J, Ry, Yz, y, xp = _system(z, x, K, xp_old, eq_old, cones, modes, dims, offsets,
-                                  Q, PSYM, PDEV, VEC_I, SYM)
+                                  Q, PROJ, PDEV, VEC_I, SYM)
     merit = _merit(R, modes, dims, offsets, moduli)
     for _ in range(max_it):
         if not np.isfinite(merit):
@@ -277,7 +279,7 @@ def _newton(x, K, xp_old, eq_old, cones, modes, dims, a0, l0, moduli, Q, PSYM, P
         for _half in range(30):
             zt = z + alpha * dz
             Rt, Jt, Ryt, Yzt, yt, xpt = _system(zt, x, K, xp_old, eq_old, cones, modes, dims,
-                                                offsets, Q, PSYM, PDEV, VEC_I, SYM)
+                                                offsets, Q, PROJ, PDEV, VEC_I, SYM)
             mt = _merit(Rt, modes, dims, offsets, moduli)
             if np.isfinite(mt) and mt <= (1.0 - 1e-4 * alpha) * merit:
                 decreased = True
@@ -393,7 +395,7 @@ def _after_failure(modes, z, offsets, dims, y, apex_tries, SYM):
 
 
 @numba.njit(cache=True)
-def _return_one(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PSYM, PDEV, VEC_I, SYM,
+def _return_one(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PROJ, PDEV, VEC_I, SYM,
                 y_out, C_out, xp_out, eq_out, flags_out):
     """One point (module docstring). Returns the number of active-set passes, -1 if none
     converged."""
@@ -438,7 +440,7 @@ def _return_one(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PSYM, PDEV, VE
         if active == 0:
             return passes
         ok, z, offsets, J, Ry, Yz, y, xp = _newton(
-            x, K, xp_old, eq_old, cones, modes, dims, a0, l0, moduli, Q, PSYM, PDEV, VEC_I,
+            x, K, xp_old, eq_old, cones, modes, dims, a0, l0, moduli, Q, PROJ, PDEV, VEC_I,
             SYM, scale, 1e-12, 60)
         if not ok:
             if not _after_failure(modes, z, offsets, dims, y, apex_tries, SYM):
@@ -471,11 +473,11 @@ def _return_one(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PSYM, PDEV, VE
 
 
 @numba.njit(cache=True)
-def _return_all(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PSYM, PDEV, VEC_I, SYM,
+def _return_all(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PROJ, PDEV, VEC_I, SYM,
                 y, C, xp, eq, flags):
     failed = 0
     for n in range(x.shape[0]):
-        if _return_one(x[n], K, xp_old[n], eq_old[n], cones, has_cone, moduli, Q, PSYM, PDEV,
+        if _return_one(x[n], K, xp_old[n], eq_old[n], cones, has_cone, moduli, Q, PROJ, PDEV,
                        VEC_I, SYM, y[n], C[n], xp[n], eq[n], flags[n]) < 0:
             failed += 1
     return failed
@@ -506,5 +508,5 @@ def point_return(x, xp_old, eq_old, K, cones, has_cone):
     failed = _return_all(x, K, np.ascontiguousarray(xp_old, dtype=float),
                          np.ascontiguousarray(eq_old, dtype=float),
                          np.ascontiguousarray(cones, dtype=float), np.asarray(has_cone, dtype=bool),
-                         level_moduli(K), _Q, _PSYM, _PDEV, _VEC_I, _SYMMETRIC, y, C, xp, eq, flags)
+                         level_moduli(K), _Q, _PROJ, _PDEV, _VEC_I, _SYMMETRIC, y, C, xp, eq, flags)
     return y, C, xp, eq, flags, int(failed)
