@@ -14,7 +14,7 @@ import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
 import dolfinx.geometry
 import numpy as np
 
-__all__ = ["PointsOutsideMesh", "affine_maps", "inside_reference", "locate_owned", "owner_ranks",
+__all__ = ["PointsOutsideMesh", "affine_maps", "cell_tree", "inside_reference", "locate_owned", "owner_ranks",
            "pad_points", "reference_coordinates", "relocate"]
 
 
@@ -71,7 +71,7 @@ def owner_ranks(mesh: dolfinx.mesh.Mesh, points: np.ndarray, padding: float = 1e
 
 
 def locate_owned(
-    mesh: dolfinx.mesh.Mesh, points: np.ndarray, padding: float = 1e-10
+    mesh: dolfinx.mesh.Mesh, points: np.ndarray, padding: float = 1e-10, tree=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Owned cell and reference coordinates of each point (local, not collective).
 
@@ -82,6 +82,8 @@ def locate_owned(
     Args:
         mesh: the FE mesh (affine or curved cells).
         points: (n, gdim) particle centroids [m].
+        tree: the mesh's cell bounding-box tree (:func:`cell_tree`), kept by a caller whose
+            mesh does not move (building it costs more than the search), or None.
 
     Returns:
         cells (n,) int32 local cell indices and X (n, tdim) reference coordinates.
@@ -91,7 +93,7 @@ def locate_owned(
     n_owned = mesh.topology.index_map(tdim).size_local
     cells = np.full(x.shape[0], -1, dtype=np.int32)
     if x.shape[0]:
-        tree = dolfinx.geometry.bb_tree(mesh, tdim, padding=padding)
+        tree = tree or cell_tree(mesh, padding)
         candidates = dolfinx.geometry.compute_collisions_points(tree, x)
         colliding = dolfinx.geometry.compute_colliding_cells(mesh, candidates, x)
         for i in range(x.shape[0]):
@@ -110,6 +112,13 @@ def locate_owned(
 
 
 _SIMPLICES = ("interval", "triangle", "tetrahedron")
+
+
+def cell_tree(mesh: dolfinx.mesh.Mesh, padding: float = 1e-10):
+    """The bounding-box tree of the mesh's local cells, for :func:`locate_owned` and
+    :func:`relocate` on a mesh that does not move (the caller keeps it, as it keeps
+    :func:`affine_maps`: a 2D chamber's tree costs ~1 ms, a point search through it microseconds)."""
+    return dolfinx.geometry.bb_tree(mesh, mesh.topology.dim, padding=padding)
 
 
 def _affine(mesh) -> bool:
@@ -168,7 +177,7 @@ def inside_reference(cell_type: str, X: np.ndarray, tol: float = 1e-12) -> np.nd
 
 def relocate(
     mesh: dolfinx.mesh.Mesh, points: np.ndarray, cells: np.ndarray, padding: float = 1e-10,
-    maps=None,
+    maps=None, tree=None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Cells and reference coordinates of moved points, searching only for those that left.
 
@@ -181,6 +190,7 @@ def relocate(
         points: (n, gdim) new centroids [m], same points and order as ``cells``.
         cells: (n,) their previous owned local cells.
         maps: :func:`affine_maps` of the mesh, or None.
+        tree: :func:`cell_tree` of the mesh, or None (built here when a point left its cell).
 
     Returns:
         cells (n,) int32, X (n, tdim), changed (n,) bool (cell differs from before) and
@@ -198,7 +208,7 @@ def relocate(
     if left.size:
         tdim = mesh.topology.dim
         n_owned = mesh.topology.index_map(tdim).size_local
-        tree = dolfinx.geometry.bb_tree(mesh, tdim, padding=padding)
+        tree = tree or cell_tree(mesh, padding)
         candidates = dolfinx.geometry.compute_collisions_points(tree, x[left])
         colliding = dolfinx.geometry.compute_colliding_cells(mesh, candidates, x[left])
         for k, i in enumerate(left):

@@ -75,7 +75,7 @@ from dolfinx import default_scalar_type, fem, la
 from dolfinx import mesh as _mesh
 from dolfinx.fem.petsc import LinearProblem, assemble_matrix, assemble_vector
 
-from coupling.locate import affine_maps, locate_owned, owner_ranks, relocate
+from coupling.locate import affine_maps, cell_tree, locate_owned, owner_ranks, relocate
 from dem.drag import GroupDrag, group_means
 from dem.state import FREE
 from granfe.problem import Where, boundary_facets
@@ -263,7 +263,8 @@ class DarcyFlow:
                        "pc_factor_mat_solver_type": "petsc" if domain.comm.size == 1 else
                        "mumps", **(petsc_options or {})}
         self._mine = None   # global rows of the grains this rank evaluates
-        self._maps = affine_maps(domain)   # the mesh does not move: its pull-backs once
+        # the mesh does not move: its pull-backs and its cells' search tree once
+        self._maps, self._tree = affine_maps(domain), cell_tree(domain)
         self.forces = np.zeros((sim.p.n, 3))  #: the fluid's force on every grain [N] (last step)
         #: other forces [N] (n, 3) handed to the DEM with the fluid's (e.g. a surcharge):
         #: `dem.Simulation.set_external_force` holds one set, which :meth:`apply_forces` sets
@@ -304,13 +305,13 @@ class DarcyFlow:
         if self._mine is not None:
             mine = self._mine
             cells, X, _, lost = relocate(self.domain, x[mine], self._grains.cells,
-                                         maps=self._maps)
+                                         maps=self._maps, tree=self._tree)
             if self.domain.comm.allreduce(int(lost.sum())) == 0:
                 self._grains.evaluate(cells, X)
                 return
         owners = owner_ranks(self.domain, x)
         self._mine = np.flatnonzero(owners == self.domain.comm.rank)
-        self._grains.evaluate(*locate_owned(self.domain, x[self._mine]))
+        self._grains.evaluate(*locate_owned(self.domain, x[self._mine], tree=self._tree))
 
     def positions(self) -> np.ndarray:
         """(particles, gdim) [m] the grains' centroids where the fluid bins them: where they

@@ -136,10 +136,10 @@ class ChamberFlow(DarcyFlow):
         self.K = bulk_modulus_2d(cpt.material_fe)
         self.M = constrained_modulus_2d(cpt.material_fe)
         self.skeleton_storage = (1.0 - self.weight) / self.K
-        self._cone = _Tracked(domain, self.Vn.ufl_element(), self._maps)
+        self._cone = _Tracked(domain, self.Vn.ufl_element(), self._maps, self._tree)
         if not np.array_equal(self._cone.space.V.dofmap.list, self.Vn.dofmap.list):
             raise RuntimeError("the penetrator's space does not number the grains' dofs alike")
-        self._probes = _Tracked(domain, self.Vp.ufl_element(), self._maps)
+        self._probes = _Tracked(domain, self.Vp.ufl_element(), self._maps, self._tree)
         self._cone_template, self._cone_area = self._cone_points()
         self.cone_force = np.zeros(3)   #: the pore pressure's force on the penetrator [N/m]
         w = self.weight.x.array
@@ -316,8 +316,8 @@ class _Tracked:
     """Points moving over a fixed mesh and a space's basis at them: located anew only when
     one of this rank's left its cells (as `DarcyFlow.grains_to_mesh` does for the grains)."""
 
-    def __init__(self, domain, element, maps):
-        self.domain, self.maps = domain, maps
+    def __init__(self, domain, element, maps, tree):
+        self.domain, self.maps, self.tree = domain, maps, tree
         self.space = GrainSpace(domain, element)
         self.mine = None
 
@@ -326,13 +326,14 @@ class _Tracked:
         (collective)."""
         comm = self.domain.comm
         if self.mine is not None:
-            cells, X, _, lost = relocate(self.domain, x[self.mine], self.space.cells, maps=self.maps)
+            cells, X, _, lost = relocate(self.domain, x[self.mine], self.space.cells, maps=self.maps,
+                                            tree=self.tree)
             if comm.allreduce(int(lost.sum())) == 0:
                 self.space.evaluate(cells, X)
                 return self.mine
         owners = owner_ranks(self.domain, x)
         self.mine = np.flatnonzero(owners == comm.rank)
-        self.space.evaluate(*locate_owned(self.domain, x[self.mine]))
+        self.space.evaluate(*locate_owned(self.domain, x[self.mine], tree=self.tree))
         return self.mine
 
 
