@@ -74,11 +74,6 @@ class GeneralizedAlpha:
             raise ValueError(f"dt (time step) must be a positive number in s, got {dt!r}")
         if tangent not in ("elastic", "consistent"):
             raise ValueError(f"tangent must be 'elastic' or 'consistent', got {tangent!r}")
-        if hasattr(problem.model, "evaluate_points"):
-            raise ValueError(f"the {problem.model.name} model returns at the quadrature points "
-                             "of the current fields; generalized-alpha's residual is at mid-point "
-                             "fields: step it with granfe.explicit.CentralDifference or quasi-"
-                             "statically")
         self.problem = problem
         self.params = p = AlphaParameters(rho_inf)
         self.t = 0.0
@@ -92,6 +87,9 @@ class GeneralizedAlpha:
         a_new = (w - self.w_old - dt_ * self.v) / (b * dt_**2) - (1 - 2 * b) / (2 * b) * self.a
         w_mid = (1 - p.alpha_f) * w + p.alpha_f * self.w_old
         a_mid = (1 - p.alpha_m) * a_new + p.alpha_m * self.a
+        # a model returning at the quadrature points (not in UFL) evaluates them at the
+        # residual's mid-point fields
+        self._points_at = w_mid if hasattr(model, "evaluate_points") else None
         dw = ufl.TestFunctions(V)
         F = problem.weighted(model.inertia_work(problem.split(a_mid), dw)
                              + model.internal_work(problem.split(w_mid), dw, state)) * problem.dx
@@ -114,7 +112,7 @@ class GeneralizedAlpha:
         problem = self.problem
         saved, problem.petsc_options = problem.petsc_options, {**(options or {}), **problem.petsc_options}
         try:
-            return problem.snes_problem(self._F, prefix or self._prefix)
+            return problem.snes_problem(self._F, prefix or self._prefix, points_at=self._points_at)
         finally:
             problem.petsc_options = saved
 
@@ -124,6 +122,7 @@ class GeneralizedAlpha:
         from dolfinx.fem.petsc import LinearProblem
 
         problem, model = self.problem, self.problem.model
+        self._evaluate_points()
         V = problem.V
         dw = ufl.TestFunctions(V)
         lhs = problem.weighted(model.inertia_work(ufl.TrialFunctions(V), dw)) * problem.dx
@@ -186,7 +185,16 @@ class GeneralizedAlpha:
         v[:] = v + dt * ((1 - p.gamma) * a + p.gamma * a_new)
         a[:] = a_new
         self.t += dt
+        # the committed state is the return of the end fields from the last committed state
+        # (a UFL model's commit evaluates its state_update at w; a pointwise one's return
+        # last ran at the mid-point fields)
+        self._evaluate_points()
         self.problem.state.commit()
+
+    def _evaluate_points(self) -> None:
+        """A model returning at the quadrature points: its return at ``w`` (collective)."""
+        if self._points_at is not None:
+            self.problem.model.evaluate_points(self.problem)
 
     def step(self) -> int:
         """Advance one step; return SNES iterations (raises with the PETSc reason on failure)."""
@@ -256,8 +264,11 @@ class _ElasticQuasiNewton:
                                 {**ELASTIC_QUASI_NEWTON, **problem.petsc_options}, J=J,
                                 jit_options=problem.jit_options)
         constants = list(J.constants())
+        points_at = stepper._points_at
         fixed_jacobian(nlp, problem.bcs,
-                       lambda: (_values(constants), tuple(id(bc) for bc in problem.bcs)))
+                       lambda: (_values(constants), tuple(id(bc) for bc in problem.bcs)),
+                       before_residual=None if points_at is None else
+                       lambda: model.evaluate_points(problem, points_at))
         return cls(problem, nlp)
 
     def solve(self) -> int | None:

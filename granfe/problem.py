@@ -439,8 +439,10 @@ class ContinuumProblem:
         return float(m0[0] - shift[2]) if self.gdim == 2 else m0 - shift
 
     # ---- solve ------------------------------------------------------------------------
-    def snes_problem(self, F, prefix: str):
-        """A configured :class:`NonlinearProblem` for a residual F in ``self.w``."""
+    def snes_problem(self, F, prefix: str, points_at=None):
+        """A configured :class:`NonlinearProblem` for a residual F in ``self.w``;
+        ``points_at``: the fields (a UFL expression of ``w``) F's stress is taken at, where a
+        model that returns at the points evaluates them (None: ``w``)."""
         nullspace = None
         if self.solver_kind == "iterative":
             nullspace = rigid_modes_nullspace(self.V, self.model.rigid_modes(self.gdim))
@@ -456,7 +458,7 @@ class ContinuumProblem:
             def residual(snes, x, b):
                 x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
                 assign(x, self.w)
-                self.model.evaluate_points(self)
+                self.model.evaluate_points(self, points_at)
                 assemble_residual(snes, x, b, **ctx)
 
             nlp.solver.setFunction(residual, nlp.b)

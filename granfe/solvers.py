@@ -139,11 +139,14 @@ def make_snes_problem(F, w: fem.Function, bcs, prefix: str, options: dict | None
     return problem
 
 
-def fixed_jacobian(problem: NonlinearProblem, bcs, key) -> None:
+def fixed_jacobian(problem: NonlinearProblem, bcs, key, before_residual=None) -> None:
     """Assemble the Jacobian of ``problem`` (its ``J`` form, rows and columns of the Dirichlet
     conditions ``bcs`` replaced by the identity) only when ``key()`` changes, e.g. the values
     of the form's constants and the conditions: a matrix left untouched keeps its
     factorisation (PETSc sets a preconditioner up again only when its operator changed).
+    ``before_residual()``: called at every residual once the unknown holds its iterate (a
+    model returning at the quadrature points fills its state there; the residual's
+    coefficients are then packed whole every time).
 
     The residual lifts the Dirichlet values as dolfinx's does, ``b + K (g - x)`` over their
     columns, but by a product with ``K``, the same form assembled without the conditions
@@ -169,9 +172,12 @@ def fixed_jacobian(problem: NonlinearProblem, bcs, key) -> None:
     def residual(snes, x, b):
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         assign(x, problem.u)
+        if before_residual is not None:
+            before_residual()
         with b.localForm() as loc:
             loc.set(0.0)
-        assemble_vector(b, problem.F, coeffs=coefficients.packed(snes.getIterationNumber() == 0))
+        whole = before_residual is not None or snes.getIterationNumber() == 0
+        assemble_vector(b, problem.F, coeffs=coefficients.packed(whole))
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         jump.set(0.0)
         set_bc(jump, bcs, x0=x)                     # g - x on the Dirichlet dofs, else 0

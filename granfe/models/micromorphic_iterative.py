@@ -22,8 +22,9 @@ evaluation, not history).
 Cost: one Newton per yielding point (45-component stress, up to 44 unknowns) and a 45 x 45
 (3D) or 16 x 16 (2D) tangent per point; elastic points cost one matrix-vector product.
 Quasi-static solves (``ContinuumProblem.solve``) and the explicit stepper evaluate the
-points; the implicit dynamic stepper (generalised-alpha, whose residual is at mid-point
-fields) does not, and refuses the model.
+points at the current fields; the implicit dynamic stepper (generalised-alpha) at its
+residual's mid-point fields, and at the step's end fields before it commits the state (the
+closed-form model's commit: the return of the end fields from the committed state).
 """
 
 from __future__ import annotations
@@ -70,7 +71,9 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
 
     def __init__(self, material):
         super().__init__(material)
-        self._measures: fem.Expression | None = None
+        # the measures' expression per fields evaluated at (w, or a stepper's mid-point
+        # fields), each kept with the UFL fields it was compiled for
+        self._measures: dict[int, tuple] = {}
 
     def constant_values(self, material):
         values = super().constant_values(material.elastic)
@@ -158,21 +161,24 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
                                      self.constants)
 
     # ---- the points -----------------------------------------------------------------
-    def evaluate_points(self, problem) -> None:
+    def evaluate_points(self, problem, fields=None) -> None:
         """The return at every quadrature point of this rank's cells for the current
-        ``problem.w``: trial plastic state, and the stress and tangent the residual expands
-        about (committed and trial alike). Ghost cells from their owners. Collective."""
+        ``problem.w`` (``fields``: a UFL expression of it whose residual is assembled instead,
+        e.g. generalized-alpha's mid-point fields): trial plastic state, and the stress and
+        tangent the residual expands about (committed and trial alike). Ghost cells from
+        their owners. Collective."""
         state, gdim = problem.state, problem.gdim
-        if self._measures is None:
+        fields = problem.w if fields is None else fields
+        if id(fields) not in self._measures:
             Q = state.committed["stress"].function_space
-            self._measures = fem.Expression(self.measures(problem.split(problem.w)),
-                                            Q.element.interpolation_points,
-                                            jit_options=problem.jit_options)
+            self._measures[id(fields)] = (fields, fem.Expression(
+                self.measures(problem.split(fields)), Q.element.interpolation_points,
+                jit_options=problem.jit_options))
         domain = problem.domain
         cells = np.arange(domain.topology.index_map(domain.topology.dim).size_local, dtype=np.int32)
         idx = measure_indices(gdim)
         n_idx = len(idx)
-        x_in = self._measures.eval(domain, cells).reshape(-1, n_idx)
+        x_in = self._measures[id(fields)][1].eval(domain, cells).reshape(-1, n_idx)
         npts = x_in.shape[0]
         x = np.zeros((npts, NX))
         x[:, idx] = x_in
