@@ -21,15 +21,34 @@ class GhostMotion:
     """The ghosts' motion over one FE step of ``dt_fe`` [s]: particles ``rows`` (k,) at
     ``base + ((1 - f) u_start + f u_end)`` at the fraction f of the step, with velocity
     ``(u_end - u_start) / dt_fe``. base (k, 3) [m] (where the ghosts are when the continuum
-    is undeformed); u_start, u_end (k, d) [m] (the FE displacements at the ghosts)."""
+    is undeformed); u_start, u_end (k, d) [m] (the FE displacements at the ghosts).
 
-    def __init__(self, rows, base, u_start, u_end, dt_fe: float):
+    theta_start, theta_end: the continuum's rotation at the ghosts [rad] ((k,) about z in
+    2D, (k, 3) in 3D; the micropolar rotation, or a micromorphic phi's axial vector); the
+    ghosts then spin at ``(theta_end - theta_start) / dt_fe`` over the step, the rotation
+    prescribed as the translation is (a sphere has no orientation to set: its rotation acts
+    on the grains through the contacts' tangential slip, which its spin drives). None: the
+    ghosts' spin is left as it is."""
+
+    def __init__(self, rows, base, u_start, u_end, dt_fe: float, theta_start=None, theta_end=None):
         self.rows, self.base, self.u_start, self.u_end = rows, base, u_start, u_end
         self.dt_fe = float(dt_fe)
+        if (theta_start is None) != (theta_end is None):
+            raise ValueError("GhostMotion: theta_start and theta_end are given together (or neither)")
+        self.theta = None if theta_start is None else (theta_start, theta_end)
+
+    def spin(self) -> np.ndarray | None:
+        """(k, 3) [rad/s] the ghosts' angular velocity over the step, or None."""
+        if self.theta is None:
+            return None
+        rate = (np.asarray(self.theta[1], float) - np.asarray(self.theta[0], float)) / self.dt_fe
+        if rate.ndim == 1:                     # 2D: about z
+            return np.column_stack([np.zeros((len(rate), 2)), rate])
+        return rate
 
     def motion(self) -> Interpolated:
         return Interpolated(self.rows, self.base, self.u_start, self.u_end,
-                            velocity=(self.u_end - self.u_start) / self.dt_fe)
+                            velocity=(self.u_end - self.u_start) / self.dt_fe, omega=self.spin())
 
 
 def sub_cycle(sim, substeps: int, penetrator, depth: float, velocity: float, axis: int,

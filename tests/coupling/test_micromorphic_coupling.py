@@ -321,8 +321,11 @@ def coupled_pile(tmp_path_factory):
     iface = cpt.interface
     n_u = iface.fields[0].prescribed.size
     first = {"prescribed": iface.prescribed_values()[n_u:].copy(),
-             "fit": iface.project_micro_deformation(cpt._grain_displacement(geostatic=False))}
-    cpt.run(steps=2)
+             "fit": iface.project_micro_deformation(cpt._grain_displacement(geostatic=False)),
+             "theta": (cpt.g_prev[1].copy(), cpt._g_now[1].copy())}   # the next step's ghosts
+    cpt.run(steps=1)
+    first["spin"] = cpt.sim.p.omega[cpt.ghost_local].copy()
+    cpt.run(steps=1)
     cpt.save_checkpoint(where)
     cpt.run()
     return prm, cpt, w_geo, where, first
@@ -332,8 +335,8 @@ def coupled_pile(tmp_path_factory):
 def test_coupled_micromorphic_pile_prescribes_the_fit_and_restarts_to_the_bit(coupled_pile):
     """A coupled micromorphic pile (3D, geostatic start): the first step's prescribed phi is the
     geostatic phi plus the relaxed fit of the grains' displacements; the geostatic state is
-    the micropolar one's uniaxial compression (lam, G the grains'); a restart from step 3
-    repeats the run to the bit."""
+    the micropolar one's uniaxial compression (lam, G the grains'); the ghosts spin with the
+    axial vector of skew(phi); a restart from step 3 repeats the run to the bit."""
     from coupling.apps.penetration.coupled import CoupledPenetration
 
     prm, cpt, w_geo, where, first = coupled_pile
@@ -356,6 +359,12 @@ def test_coupled_micromorphic_pile_prescribes_the_fit_and_restarts_to_the_bit(co
     # degree-1 phi cannot equal the cellwise-constant grad u of a degree-1 u, and the b-term
     # that ties them stiffens the coarse far field
     assert cpt.comm.allreduce(np.abs(u[:, 2] - exact).max(initial=0.0), MPI.MAX) < 0.1 * top
+    # the second step's ghosts spun from the first step's rotation at them to the next, as
+    # they were translated (coupling.substep.GhostMotion)
+    theta0, theta1 = first["theta"]
+    spin = (theta1 - theta0) / cpt.dt_fe
+    assert np.abs(spin).max() > 0
+    assert np.array_equal(first["spin"], spin)
     # restart
     again = CoupledPenetration(prm, cpt.comm, log=lambda m: None, checkpoint=where)
     assert len(again.history) == 3

@@ -916,8 +916,7 @@ class CoupledPenetration:
             t1 = clock()
             if it > 1:
                 sim.load_state(saved)
-            ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0],
-                                 self.dt_fe)
+            ghosts = self._ghosts(g_prev, g_next)
             for servo in self.servos:   # the top plate's speed, held over the sub-cycle
                 servo(sim)
             depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), depth0, prm.velocity,
@@ -1014,7 +1013,7 @@ class CoupledPenetration:
         t_ghosts = clock() - t0
         st.predict()
         t_dem = clock()
-        ghosts = GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0], self.dt_fe)
+        ghosts = self._ghosts(g_prev, g_next)
         for servo in self.servos:   # the top plate's speed, held over the sub-cycle
             servo(sim)
         hook = self._before_sub_cycle(hook)
@@ -1040,6 +1039,13 @@ class CoupledPenetration:
                                   "projection": t2 - t1, "fe_solve": t3 - t2,
                                   "total": self.history[-1]["wall_time"]})
         return self.history[-1]
+
+    def _ghosts(self, g_prev, g_next) -> GhostMotion:
+        """The ghosts' motion over the FE step from the continuum's (u, theta) at them, ``g_prev``
+        to ``g_next``: translated by u and spun by theta (the micropolar rotation, a
+        micromorphic phi's axial vector)."""
+        return GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0],
+                           self.dt_fe, theta_start=g_prev[1], theta_end=g_next[1])
 
     def _before_sub_cycle(self, hook):
         """Called once before each FE step's DEM sub-cycle; returns the hook of its DEM steps
