@@ -5,6 +5,8 @@ Tolerances: 1e-10 where the fit is exact (an affine displacement field; the same
 independent dense least-squares solve per node); 1e-13 for the serial == 2 ranks check.
 """
 
+from types import SimpleNamespace
+
 import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
 
@@ -243,8 +245,6 @@ def test_penetration_micromorphic_material_is_the_grains_micropolar_estimate():
     """W of the derived 18 moduli = lam/2 tr(eps)^2 + G |eps|^2 + b/2 |sym g|^2 + kappa/2 |skew g|^2
     + gamma/4 |grad phi|^2 with g = grad u - phi, G = mu + kappa / 2, b = micro_stiffness G; a
     skew phi (a rotation) has the micropolar energy."""
-    from types import SimpleNamespace
-
     from coupling.apps.penetration.coupled import CoupledPenetration
     from coupling.apps.penetration.parameters import PenetrationParameters
     from granfe.models.micromorphic import micromorphic_energy
@@ -295,9 +295,71 @@ def test_penetration_scene_selects_the_micromorphic_continuum_and_names_bad_keys
                           "output": {"checkpoint_every": 0}})
     with pytest.raises(SceneError, match=r"continuum\.integrator = 'explicit'"):
         load_scene(None, {"continuum": {"model": "micromorphic", "integrator": "explicit"}})
-    with pytest.raises(SceneError, match=r"continuum\.model must be 'micropolar', 'micropolar_drucker_prager' or "
-                                         r"'micromorphic', got 'micromorphi'"):
+    with pytest.raises(SceneError, match=r"continuum\.model must be 'micropolar', 'micropolar_drucker_prager', "
+                                         r"'micromorphic' or 'micromorphic_drucker_prager', got 'micromorphi'"):
         load_scene(None, {"continuum": {"model": "micromorphi"}})
+
+
+def test_penetration_scene_selects_micromorphic_plasticity_and_names_bad_values():
+    """model = "micromorphic_drucker_prager" takes the scene's cone; it needs the 3D free
+    surface (the continuum's own geostatic stress), the loose exchange, a fixed window and
+    some strength, each refusal naming the scene's keys."""
+    from coupling.scene import SceneError
+    from coupling.scene import load_scene as load
+
+    def load_scene(tables):
+        base = {"scene": {"kind": "penetration", "name": "mmdp", "dimension": 3},
+                "continuum": {"model": "micromorphic_drucker_prager", "friction_deg": 35.0,
+                              "dilatancy_deg": 5.0, "cohesion": 800.0, "hardening": 1e5}}
+        return load(None, {k: base.get(k, {}) | tables.get(k, {}) for k in base.keys() | tables.keys()})
+
+    prm = load_scene({}).parameters()
+    assert (prm.continuum, prm.continuum_friction_deg, prm.continuum_dilatancy_deg, prm.continuum_cohesion,
+            prm.continuum_hardening) == ("micromorphic_drucker_prager", 35.0, 5.0, 800.0, 1e5)
+    needs = (r"continuum\.model = 'micromorphic_drucker_prager' needs scene\.dimension = 3 and "
+             r"chamber\.vertical_stress = 0 \(got scene\.dimension = {}, chamber\.vertical_stress = {}\)")
+    with pytest.raises(SceneError, match=needs.format(2, "0.0")):
+        load_scene({"scene": {"dimension": 2}})
+    with pytest.raises(SceneError, match=needs.format(3, "20000.0")):
+        load_scene({"chamber": {"vertical_stress": 2e4}})
+    with pytest.raises(SceneError, match=r"continuum\.friction_deg = 0 with continuum\.cohesion = 0 has no strength"):
+        load_scene({"continuum": {"friction_deg": 0.0, "dilatancy_deg": 0.0, "cohesion": 0.0}})
+    with pytest.raises(SceneError, match=r"continuum\.model = 'micromorphic_drucker_prager' couples by the loose"):
+        load_scene({"coupling": {"interface": "iqn-ils"}})
+    with pytest.raises(SceneError, match=r"continuum\.model = 'micromorphic_drucker_prager' needs follow"):
+        load_scene({"follow": {"enabled": True}, "output": {"checkpoint_every": 0}})
+
+
+def test_penetration_micromorphic_cone_holds_the_geostatic_state():
+    """The model: the packing's micromorphic solid with the cone on the macro level only,
+    returned at the points; a cohesion that cannot hold the geostatic state (sigma_h = K0
+    sigma_v) at the chamber's base is refused, naming the least cohesion, which is the
+    Mohr-Coulomb closed form on the compression meridian, sigma_v = K0 sigma_v N + 2 c sqrt(N)."""
+    import math
+
+    from coupling.apps.penetration.coupled import CoupledPenetration
+    from coupling.apps.penetration.parameters import PenetrationParameters
+    from granfe.models.micromorphic_iterative import MicromorphicDruckerPragerIterative
+
+    def model(cohesion):
+        cpt = CoupledPenetration.__new__(CoupledPenetration)   # the model's choice only: no grains
+        cpt.prm = PenetrationParameters(**(TINY | dict(continuum="micromorphic_drucker_prager",
+                                                        continuum_cohesion=cohesion)), shape="pile")
+        cpt.material_fe, cpt.contact_stats = mp, {}
+        return cpt._micromorphic_drucker_prager()
+
+    mp = MicropolarMaterial(lam=3e5, mu=4.5e6, kappa=1e6, gamma=7.0, rho=1600.0, j=1e-6)
+    k0 = mp.lam / (mp.lam + 2 * mp.mu + mp.kappa)
+    n = (1 + math.sin(math.radians(30))) / (1 - math.sin(math.radians(30)))
+    sigma_v = mp.rho * 9.81 * TINY["chamber_depth"]
+    least = sigma_v * (1 - k0 * n) / (2 * math.sqrt(n))
+    with pytest.raises(ValueError, match=rf"K0 = {k0:.3g}; .*continuum_cohesion must be >= {least:.4g} Pa"):
+        model(least * (1 - 1e-6))
+    m = model(least * (1 + 1e-9))
+    assert isinstance(m, MicromorphicDruckerPragerIterative)
+    assert m.material.active == ("macro",) and m.material.macro.cohesion == least * (1 + 1e-9)
+    assert m.material.elastic == CoupledPenetration._micromorphic_material(
+        SimpleNamespace(material_fe=mp, prm=PenetrationParameters(**TINY)))
 
 
 # a few hundred spheres, a coarse mesh (tests/coupling/test_penetration.py's TINY) under a
@@ -394,3 +456,28 @@ def test_moved_grains_refit_as_a_fresh_interface():
     fresh = CouplingInterface(q, moved, kinds, regions)
     assert np.array_equal(fresh.fields[1].prescribed, iface.fields[1].prescribed)
     assert np.allclose(iface.project_micro_deformation(u), fresh.project_micro_deformation(u), rtol=0, atol=1e-12)
+
+
+@pytest.mark.mpi
+def test_coupled_micromorphic_drucker_prager_pile_yields_under_the_pile():
+    """The plastic micromorphic continuum in the coupled pile (3D, geostatic start inside the
+    cone): a few FE steps of the push, the continuum yielding where the grains under the pile
+    load it, more than under its own weight."""
+    from coupling.apps.penetration.coupled import CoupledPenetration, PenetrationParameters
+
+    comm = MPI.COMM_WORLD
+    prm = PenetrationParameters(**(TINY | dict(continuum="micromorphic_drucker_prager", continuum_cohesion=500.0)),
+                                shape="pile")
+    cpt = CoupledPenetration(prm, comm, log=lambda m: None)
+    assert cpt.problem.model.name == "micromorphic_drucker_prager_iterative" and cpt.interface.micro is not None
+
+    def plastic():
+        eq = cpt.problem.state.owned("equivalent_plastic_strain").reshape(-1, 5)[:, 0]
+        return comm.allreduce(int((eq > 0).sum()), MPI.SUM), comm.allreduce(eq.max(initial=0.0), MPI.MAX)
+
+    geostatic = plastic()
+    cpt.run(steps=4)
+    pushed = plastic()
+    qc = [h["q_c"] for h in cpt.history]
+    assert np.all(np.isfinite(qc)) and qc[-1] > 1e3     # the pile is in the grains
+    assert pushed[0] > geostatic[0] and pushed[1] > 10 * geostatic[1]

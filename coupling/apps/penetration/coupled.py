@@ -483,7 +483,7 @@ class CoupledPenetration:
             # Newton on the closed-form return can cycle at the residual's round-off floor of
             # the elastic-plastic switches: stop at a millionth of the nodal forces the
             # initial stress puts on a window element (the forces the grains exchange)
-            scale = max(abs(v) for v in self.initial_stress) * prm.element_size_window ** (dim - 1)
+            scale = self._stress_scale() * prm.element_size_window ** (dim - 1)
             options = {"snes_atol": 1e-6 * scale}
         self.problem = ContinuumProblem(data.mesh, model, facet_tags=data.facet_tags, tag_names=names,
                                         degree=(1, 1), prefix="cpt_", solver="redundant",
@@ -577,21 +577,71 @@ class CoupledPenetration:
             from granfe.models.micromorphic import Micromorphic
 
             return Micromorphic(self._micromorphic_material())
+        if prm.continuum == "micromorphic_drucker_prager":
+            return self._micromorphic_drucker_prager()
         from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
 
         elastic = replace(self.material_fe, alpha=0.0, beta=0.0)
         s0 = self._initial_stress()
-        phi, psi = prm.continuum_friction_deg, prm.continuum_dilatancy_deg
-        cal = self.contact_stats.get("calibration")
-        if cal is not None:
-            phi = cal["friction_peak_deg"]
-            psi = min(max(cal["dilatancy_deg"], 0.0), phi)
+        phi, psi = self._cone_angles()
         # 2D: the disks' out-of-plane stress is unknown, taken as the lateral one
         mat = DruckerPragerMaterial(elastic, prm.continuum_cohesion, phi, psi,
                                     hardening=prm.continuum_hardening,
                                     match="plane_strain" if prm.dim == 2 else "triaxial_compression",
                                     initial_stress=(s0[0], s0[1], s0[0]) if prm.dim == 2 else s0)
         return MicropolarDruckerPrager(mat)
+
+    def _cone_angles(self) -> tuple[float, float]:
+        """(friction, dilatancy) [deg] of the continuum's cone: the scene's, or the element
+        tests' peak friction and dilatancy (``continuum_constants = "calibrated"``)."""
+        prm = self.prm
+        phi, psi = prm.continuum_friction_deg, prm.continuum_dilatancy_deg
+        cal = self.contact_stats.get("calibration")
+        if cal is not None:
+            phi = cal["friction_peak_deg"]
+            psi = min(max(cal["dilatancy_deg"], 0.0), phi)
+        return phi, psi
+
+    def _micromorphic_drucker_prager(self):
+        """The micromorphic solid of :meth:`_micromorphic_material` with the scene's cone on
+        its macro stress S (the total stress of a homogeneous state, where the relative
+        stress vanishes: the micropolar Drucker-Prager model's cone on sym sigma), matched to
+        Mohr-Coulomb on the compression meridian; the micro and higher-order levels elastic.
+        Its moduli couple the levels (D = sigma = -b), so the levels return together at the
+        points (:class:`~granfe.models.micromorphic_iterative.MicromorphicDruckerPragerIterative`;
+        the closed-form model needs D = 0)."""
+        from granfe.models.micromorphic_drucker_prager import Cone, MicromorphicDruckerPragerMaterial
+        from granfe.models.micromorphic_iterative import MicromorphicDruckerPragerIterative
+
+        prm = self.prm
+        phi, psi = self._cone_angles()
+        cone = Cone(prm.continuum_cohesion, phi, psi, hardening=prm.continuum_hardening,
+                    match="triaxial_compression")
+        self._check_geostatic_cone(cone)
+        return MicromorphicDruckerPragerIterative(
+            MicromorphicDruckerPragerMaterial(self._micromorphic_material(), macro=cone))
+
+    def _check_geostatic_cone(self, cone) -> None:
+        """Refuse a cone the geostatic state (:meth:`_geostatic_loads`: sigma_h = K0 sigma_v,
+        K0 the packing's elastic one) leaves at the chamber's base: without cohesion K0 must
+        reach about Ka = (1 - sin phi) / (1 + sin phi), and the affine estimate's K0 of a
+        settled packing is far below (0.03 measured): every point would yield under its own
+        weight, against side tractions that cannot hold it (a collapse, solved for minutes)."""
+        from granfe.models.micromorphic_drucker_prager import Cone
+
+        prm, m = self.prm, self.material_fe
+        k0, sigma_v = self._geostatic_k0(), m.rho * prm.gravity * prm.chamber_depth
+        A, _, strength = cone.constants
+        # f = sqrt(J2) + A p - k at the base (compression: p = -(1 + 2 K0) sigma_v / 3)
+        load = sigma_v * (abs(1 - k0) / np.sqrt(3) - A * (1 + 2 * k0) / 3)
+        if load > strength:
+            per_pa = Cone(1.0, cone.friction_deg, cone.dilatancy_deg).constants[2]
+            raise ValueError(
+                f"continuum = 'micromorphic_drucker_prager': the geostatic stress lies outside its cone at "
+                f"the chamber's base (sigma_v = {sigma_v:.4g} Pa at chamber_depth = {prm.chamber_depth} m, "
+                f"sigma_h = K0 sigma_v with the packing's elastic K0 = {k0:.3g}; friction "
+                f"{cone.friction_deg:.3g} deg): the continuum would collapse under its own weight. "
+                f"continuum_cohesion must be >= {load / per_pa:.4g} Pa (got {cone.cohesion:.4g})")
 
     def _micromorphic_material(self):
         """The packing's micropolar constants (lam, mu, kappa, gamma; alpha = beta = 0) as a
@@ -617,6 +667,15 @@ class CoupledPenetration:
         return MicromorphicMaterial(lam=m.lam, mu=g + 2 * b, eta=0.0, tau=0.0, kappa=(m.kappa - b) / 2,
                                     nu=-(m.kappa + b) / 2, sigma=-b, tau7=m.gamma / 2, **zero,
                                     rho=m.rho, micro_inertia=m.j / 2)
+
+    def _stress_scale(self) -> float:
+        """[Pa] the stress the grains exchange with the continuum: the largest component of
+        the consolidated window's initial stress, or on a 3D free surface the geostatic
+        vertical stress at the window's base (the continuum's own, no initial stress)."""
+        prm = self.prm
+        if prm.dim == 3 and prm.vertical_stress == 0:
+            return self.material_fe.rho * prm.gravity * prm.window_depth
+        return max(abs(v) for v in self._initial_stress())
 
     def _initial_stress(self) -> tuple[float, ...]:
         """The consolidated window's mean stress, measured once (or read from a checkpoint)."""
@@ -818,7 +877,7 @@ class CoupledPenetration:
         import ufl
 
         m, g = self.material_fe, self.prm.gravity
-        k0 = m.lam / (m.lam + 2 * m.mu + m.kappa)
+        k0 = self._geostatic_k0()
         self.problem.body_force((0.0, 0.0, -m.rho * g))
         xs = ufl.SpatialCoordinate(self.problem.domain)
         n = ufl.FacetNormal(self.problem.domain)
@@ -826,6 +885,11 @@ class CoupledPenetration:
         sigma_geo = -m.rho * g * (self.surface - xs[2]) * ufl.diag(ufl.as_vector([k0, k0, 1.0]))
         self.problem.traction("side", sigma_geo * n)
         self.k0 = k0
+
+    def _geostatic_k0(self) -> float:
+        """K0 = lam / (lam + 2 mu + kappa): sigma_h / sigma_v of the continuum under uniaxial strain."""
+        m = self.material_fe
+        return m.lam / (m.lam + 2 * m.mu + m.kappa)
 
     def _hold_geostatic_state(self):
         """Prescribed dofs start at w_geo; ghosts and grains move relative to it."""

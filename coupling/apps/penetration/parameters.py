@@ -13,9 +13,11 @@ import numpy as np
 
 from dem.timestep import DEFAULT_SAFETY
 
-__all__ = ["PenetrationParameters", "MovingWindowParameters", "VERTICAL"]
+__all__ = ["CONTINUA", "PenetrationParameters", "MovingWindowParameters", "VERTICAL"]
 
 VERTICAL = {2: 1, 3: 2}   # index of the vertical (penetration) axis
+# the continuum models a penetration couples to its grains (PenetrationParameters.continuum)
+CONTINUA = ("micropolar", "micropolar_drucker_prager", "micromorphic", "micromorphic_drucker_prager")
 
 
 @dataclass(frozen=True)
@@ -119,7 +121,12 @@ class PenetrationParameters:
     # lam/2 tr(eps)^2 + G |eps|^2 + b/2 |sym(grad u - phi)|^2 + kappa/2 |skew(grad u - phi)|^2
     # + gamma/4 |grad phi|^2 (G = mu + kappa / 2), whose limit b -> inf is the micropolar
     # solid; continuum_micro_stiffness is b / G, how stiffly the micro-stretch follows the
-    # grains' strain (CoupledPenetration._micromorphic_material)
+    # grains' strain (CoupledPenetration._micromorphic_material). "micromorphic_drucker_prager":
+    # that solid with the Drucker-Prager cone of continuum_friction_deg, _dilatancy_deg,
+    # _cohesion and _hardening on its macro stress (the micro and higher-order levels
+    # elastic); its moduli couple the levels (sigma = -b), so the three levels return
+    # together at the points (granfe.models.micromorphic_iterative). 3D free surface only:
+    # the continuum's own geostatic solve gives the total stress its cone needs
     continuum_micro_stiffness: float = 1.0
 
     def __post_init__(self):
@@ -190,22 +197,7 @@ class PenetrationParameters:
             raise ValueError("interface = 'forces' needs the increment from a consolidated state "
                              "(2D, or vertical_stress > 0 in 3D): the 3D geostatic start "
                              "prescribes the window's nodes")
-        if self.continuum not in ("micropolar", "micropolar_drucker_prager", "micromorphic"):
-            raise ValueError(f"continuum must be 'micropolar', 'micropolar_drucker_prager' or "
-                             f"'micromorphic', got {self.continuum!r}")
-        if not (np.isfinite(self.continuum_micro_stiffness) and self.continuum_micro_stiffness > 0):
-            raise ValueError(f"continuum_micro_stiffness (b / G of the micromorphic continuum) must be "
-                             f"> 0, got {self.continuum_micro_stiffness!r}")
-        if self.continuum == "micromorphic" and (self.interface != "loose"
-                                                 or self.continuum_integrator != "implicit"):
-            raise ValueError(f"continuum = 'micromorphic' couples by the loose exchange with the implicit "
-                             f"integrator so far (its phi fitted once per FE step): interface = "
-                             f"{self.interface!r} and continuum_integrator = {self.continuum_integrator!r} "
-                             f"need interface = 'loose', continuum_integrator = 'implicit'")
-        if self.continuum == "micropolar_drucker_prager" and not self.vertical_stress > 0:
-            raise ValueError("continuum = 'micropolar_drucker_prager' needs vertical_stress > 0 (its "
-                             "yield function needs the total stress: a uniform initial stress, the "
-                             "consolidated chamber's; a free surface under gravity has none yet)")
+        self._check_continuum()
         if self.continuum_constants not in ("lattice", "calibrated", "window", "window_isotropic"):
             raise ValueError(f"continuum_constants must be 'lattice', 'calibrated', 'window' or "
                              f"'window_isotropic', "
@@ -233,6 +225,35 @@ class PenetrationParameters:
             raise ValueError(f"consolidation_tol must lie in (0, 1), got {self.consolidation_tol!r}")
         if self.consolidation_max_steps < 1:
             raise ValueError(f"consolidation_max_steps must be >= 1, got {self.consolidation_max_steps!r}")
+
+    def _check_continuum(self):
+        """The continuum model against the exchange, the integrator and the loading."""
+        if self.continuum not in CONTINUA:
+            raise ValueError(f"continuum must be {', '.join(map(repr, CONTINUA[:-1]))} or "
+                             f"{CONTINUA[-1]!r}, got {self.continuum!r}")
+        if not (np.isfinite(self.continuum_micro_stiffness) and self.continuum_micro_stiffness > 0):
+            raise ValueError(f"continuum_micro_stiffness (b / G of the micromorphic continuum) must be "
+                             f"> 0, got {self.continuum_micro_stiffness!r}")
+        if self.continuum.startswith("micromorphic") and (self.interface != "loose"
+                                                          or self.continuum_integrator != "implicit"):
+            raise ValueError(f"continuum = {self.continuum!r} couples by the loose exchange with the "
+                             f"implicit integrator so far (its phi fitted once per FE step): interface = "
+                             f"{self.interface!r} and continuum_integrator = {self.continuum_integrator!r} "
+                             f"need interface = 'loose', continuum_integrator = 'implicit'")
+        if self.continuum == "micropolar_drucker_prager" and not self.vertical_stress > 0:
+            raise ValueError("continuum = 'micropolar_drucker_prager' needs vertical_stress > 0 (its "
+                             "yield function needs the total stress: a uniform initial stress, the "
+                             "consolidated chamber's; a free surface under gravity has none yet)")
+        if self.continuum == "micromorphic_drucker_prager" and not (self.dim == 3 and self.vertical_stress == 0):
+            raise ValueError(f"continuum = 'micromorphic_drucker_prager' needs dim = 3 and vertical_stress "
+                             f"= 0 (got dim = {self.dim}, vertical_stress = {self.vertical_stress!r}): its "
+                             "cone needs the total stress, which the continuum carries only from its own "
+                             "geostatic solve under gravity (the 3D free surface); it has no initial stress "
+                             "for the increment from a consolidated chamber")
+        if (self.continuum == "micromorphic_drucker_prager" and self.continuum_constants != "calibrated"
+                and self.continuum_friction_deg == 0 and self.continuum_cohesion == 0):
+            raise ValueError("continuum = 'micromorphic_drucker_prager': continuum_friction_deg = 0 with "
+                             "continuum_cohesion = 0 has no strength")
 
     def _check_geometry(self):
         """The sizes against each other: mesh, window, cone, chamber."""

@@ -99,7 +99,12 @@ class ContinuumModel:
     the elastic constants above with ``micro_stiffness`` = b / G, the stiffness of the
     symmetric relative deformation sym(grad u - phi) over the classical shear modulus (its
     limit b -> inf is the micropolar solid); phi at the window's nodes fitted to the grains'
-    displacements, the ghosts' rotation skew(phi)'s axial vector (`coupling.micro_kinematics`)."""
+    displacements, the ghosts' rotation skew(phi)'s axial vector (`coupling.micro_kinematics`).
+    ``micromorphic_drucker_prager``: that solid with the Drucker-Prager cone above
+    (``friction_deg``, ``dilatancy_deg``, ``cohesion``, ``hardening``; compression meridian)
+    on its macro stress, the levels returned together at the points (its moduli couple
+    them); 3D free surface only (``chamber.vertical_stress = 0``: the continuum's geostatic
+    solve gives the total stress the cone needs)."""
 
     model: str = parameter(P, "continuum")
     constants: str = parameter(P, "continuum_constants")
@@ -205,9 +210,10 @@ class PenetrationScene(_Tables):
         self.fluid_parameters()
         if self.follow.enabled:
             self.moving_parameters()
-            if self.continuum.model == "micromorphic":
-                raise SceneError("continuum.model = 'micromorphic' needs follow.enabled = false: the "
-                                 "window that follows the penetrator prescribes no micro-deformation yet")
+            if self.continuum.model.startswith("micromorphic"):
+                raise SceneError(f"continuum.model = {self.continuum.model!r} needs follow.enabled = "
+                                 "false: the window that follows the penetrator prescribes no "
+                                 "micro-deformation yet")
             if self.coupling.interface != "loose":
                 raise SceneError(f"coupling.interface = {self.coupling.interface!r}: a window that "
                                  "follows the penetrator exchanges loosely so far (coupling.interface "
