@@ -253,6 +253,17 @@ def test_hydrostatic_tension_returns_to_the_apex_with_coupled_moduli():
     assert p.state.owned("yielding").reshape(-1, 3)[:, 0].min() == 1.0
 
 
+def stepped(p, drive, stepper, steps, increment):
+    """(fields after each step (steps, n), committed equivalent plastic strains) of a
+    dynamic stepper driving the block by ``increment`` a step."""
+    history = []
+    for step in range(1, steps + 1):
+        drive(increment * step)
+        stepper.step()
+        history.append(p.w.x.array.copy())
+    return np.array(history), p.state.owned("equivalent_plastic_strain")
+
+
 def test_explicit_steps_equal_the_closed_form_model():
     """Central differences on a decoupled block of degree-1 fields (the return once a step,
     no solve): the same fields as the closed-form model, step by step."""
@@ -269,13 +280,7 @@ def test_explicit_steps_equal_the_closed_form_model():
         def drive(delta, top=top):
             top[0].value, top[1].value = delta, -delta / 2
 
-        stepper = CentralDifference(p, 2e-6)
-        history = []
-        for step in range(1, 9):
-            drive(0.002 * step)
-            stepper.step()
-            history.append(p.w.x.array.copy())
-        runs.append((np.array(history), p.state.owned("equivalent_plastic_strain")))
+        runs.append(stepped(p, drive, CentralDifference(p, 2e-6), 8, 0.002))
     assert runs[0][1].max() > 0
     assert np.abs(runs[0][0] - runs[1][0]).max() < 1e-9 * np.abs(runs[0][0]).max()
 
@@ -291,13 +296,7 @@ def test_generalized_alpha_steps_equal_the_closed_form_model(tangent):
     for k, cls in enumerate((MicromorphicDruckerPrager, MicromorphicDruckerPragerIterative)):
         p, drive = block(cls(material(hardening=2e6)), MPI.COMM_WORLD, n=2, prefix=f"mmi_ga{k}{tangent}_")
         p.petsc_options.update({"snes_rtol": 1e-12, "snes_atol": 1e-12})
-        stepper = GeneralizedAlpha(p, 1e-3, rho_inf=0.8, tangent=tangent)
-        history = []
-        for step in range(1, 6):
-            drive(0.003 * step)
-            stepper.step()
-            history.append(p.w.x.array.copy())
-        runs.append((np.array(history), p.state.owned("equivalent_plastic_strain")))
+        runs.append(stepped(p, drive, GeneralizedAlpha(p, 1e-3, rho_inf=0.8, tangent=tangent), 5, 0.003))
     (wa, ea), (wb, eb) = runs
     assert ea.max() > 0
     assert np.abs(wa - wb).max() < 1e-9 * np.abs(wa).max()
