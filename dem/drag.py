@@ -117,7 +117,7 @@ class GroupDrag:
         group_drag(p.v, p.force, sim.gravity, sim.dt, *self.arrays(sim), sim.forced)
 
     def arrays(self, sim) -> tuple:
-        """The kernel's arguments after (v, force, g, dt) (`dem.integrate`'s fused loop too):
+        """The kernel's arguments after (v, force, g, dt) (`dem.fused_steps`' loop too):
         group (-1 where not FREE), weight, weight dt / mass, alpha, axes, the groups' scale
         and shift (constant while dt, the masses and the kinds are), scratch, output."""
         p = sim.p

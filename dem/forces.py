@@ -30,7 +30,7 @@ sticking): force on j (9:12), torque on i (12:15), on j (15:18); elastic energy 
 force on j (19:22) [N]; tangential spring energy [J] (22). The rest of the contact force
 (Coulomb sliding, rolling resistance, the tangential spring) is "friction": its energy
 is booked by the integrator as the work it actually does minus the change of the spring
-energy (`dem.integrate`).
+energy (`dem.ledger`).
 """
 
 from __future__ import annotations
@@ -511,7 +511,7 @@ def _pair_csr(start, pj32, live, x, v, omega, radius, mass, material, table, his
 
 ROWS_CHUNK = 256
 """Particles per chunk of `_pair_rows_csr`. The same as `GATHER_CHUNK` and
-`dem.integrate.KD_CHUNK`, and all three spread the chunks alike: under a static schedule a
+`dem.verlet.KD_CHUNK`, and all three spread the chunks alike: under a static schedule a
 thread then works on the same particles in the three passes, and finds their rows in its
 own cache (with 128 / 512 / 2048 the kick-drift pass did not speed up on two threads)."""
 SPREAD = 7919

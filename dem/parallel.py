@@ -69,7 +69,8 @@ from dem.contact import HIST, ContactMaterial
 from dem.control import mean_force_sums, unbalanced_force_sums
 from dem.errors import BlowUpError, DomainError, TimeStepError
 from dem.forces import NOUT, pair_forces
-from dem.integrate import Simulation, _kinetic_finite
+from dem.integrate import Simulation
+from dem.ledger import _kinetic_finite
 from dem.neighbours import carry_history
 from dem.prescribed import _prescribe
 from dem.state import FREE, GHOST, Particles

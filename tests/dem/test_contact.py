@@ -100,7 +100,7 @@ def test_domain_and_blowup_errors(tmp_path):
 SCRIPT = textwrap.dedent("""
     import sys, numpy as np, numba, dem
     numba.set_num_threads(int(sys.argv[1]))
-    from dem import forces, integrate, neighbours
+    from dem import forces, integrate, neighbours, verlet
     forces.PARALLEL_MIN = integrate.KD_PARALLEL_MIN = 4096  # the prange drivers' defaults
     rng = np.random.default_rng(3)
     g = np.stack(np.meshgrid(*[np.arange(17)] * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -113,7 +113,7 @@ SCRIPT = textwrap.dedent("""
     np.save(sys.argv[2], np.concatenate([p.x, p.v, p.omega, p.force]))
     kernels = [forces._pair_rows_csr, forces._gather, forces.pair_layout, forces._wall_rows,
                forces._wall_scatter,
-               integrate._drift, integrate._kick, integrate._kick_drift_par,
+               verlet._drift, verlet._kick, verlet._kick_drift_par,
                neighbours._pairs]
     print(sum(sum(k.stats.cache_misses.values()) for k in kernels),
           min(sum(k.stats.cache_hits.values()) for k in kernels), len(sim.nl.pi))

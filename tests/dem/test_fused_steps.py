@@ -1,4 +1,4 @@
-"""`Simulation.step` without a hook runs its steps in one numba call (`dem.integrate._steps`)
+"""`Simulation.step` without a hook runs its steps in one numba call (`dem.fused_steps._steps`)
 between neighbour builds and checks; with a hook it goes through the Python loop. Both
 must give the same bits: positions, velocities, forces, contact history, walls and every
 ledger term, across neighbour rebuilds, blow-up checks, a moving wall, external forces,
@@ -68,7 +68,7 @@ def counted(monkeypatch):
         calls.append(args[0])
         return kernel(*args)
 
-    monkeypatch.setattr(integrate, "_steps", wrapper)
+    monkeypatch.setattr(integrate, "_steps", wrapper)  # the name `Simulation._fused` calls
     return calls
 
 
@@ -126,14 +126,14 @@ def test_fused_steps_with_ghosts_and_prescribed_motion(monkeypatch):
 
 CACHE_SCRIPT = textwrap.dedent("""
     import numpy as np, dem
-    from dem import integrate
+    from dem import fused_steps
     g = np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3)
     p = dem.Particles.spheres((g + 0.5) * 2.0e-3, 1e-3, 2650.0)
     mat = dem.ContactMaterial(E=2.9e7, nu=0.25, density=2650.0, friction=0.5,
                               restitution=0.5)
     sim = dem.Simulation(p, mat, dem.box_walls((0, 0, 0), (0.01,) * 3), (0, 0, -9.81))
     sim.step(30)
-    k = integrate._steps
+    k = fused_steps._steps
     print(sum(k.stats.cache_misses.values()), sum(k.stats.cache_hits.values()))
 """)
 
