@@ -74,6 +74,7 @@ import ufl
 from dolfinx import default_scalar_type, fem, la
 from dolfinx import mesh as _mesh
 from dolfinx.fem.petsc import LinearProblem, assemble_matrix, assemble_vector
+from scipy import sparse
 
 from coupling.locate import affine_maps, cell_tree, locate_owned, owner_ranks, relocate
 from dem.drag import GroupDrag, group_means
@@ -610,6 +611,14 @@ class GrainSpace:
             a[:, c] = np.bincount(cols, (self._w * v[:, c, None]).ravel(), minlength=len(a))
         out.x.scatter_reverse(la.InsertMode.add)
         out.x.scatter_forward()
+
+    def matrix(self):
+        """N as a sparse (local dofs, this rank's grains) matrix (scipy CSR), for callers
+        that apply it many times between two evaluations (no ghost sums: one rank's)."""
+        m, nd = self._cols.shape
+        n = self.V.dofmap.index_map.size_local + self.V.dofmap.index_map.num_ghosts
+        return sparse.csr_matrix((self._w.ravel(), (self._cols.ravel(), np.repeat(np.arange(m), nd))),
+                                 shape=(n, m))
 
     def at_grains(self, u: fem.Function) -> np.ndarray:
         """Values (m, bs) of ``u`` (on V or its blocked space) at this rank's grains."""

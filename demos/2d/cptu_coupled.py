@@ -49,7 +49,7 @@ SHORT = os.environ.get("GRANFE_SHORT") == "1"
 # ---- parameters (SI, per unit thickness) ------------------------------------------------------
 parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 parser.add_argument("--scene", type=Path, default=Path("scenes/cptu_2d.toml"))
-parser.add_argument("--depth", type=float, default=0.012 if SHORT else 0.03, help="push [m]")
+parser.add_argument("--depth", type=float, default=0.012 if SHORT else 0.045, help="push [m]")
 parser.add_argument("--fast", type=float, default=0.2, help="fast push rate [m/s]")
 parser.add_argument("--slow", type=float, default=0.1, help="slow push rate [m/s]")
 parser.add_argument("--k", type=float, default=3e-11, help="the two rates' permeability [m^2]")
@@ -57,6 +57,8 @@ parser.add_argument("--k-drained", type=float, default=3e-9, help="drained perme
 parser.add_argument("--k-undrained", type=float, default=3e-13 if SHORT else 9e-13,
                     help="undrained permeability [m^2]")
 parser.add_argument("--seed", type=int, default=None, help="the packing's seed (default: the scene's)")
+parser.add_argument("--every", type=int, default=None,
+                    help="DEM steps per fluid step (default: the scene's fluid.every)")
 parser.add_argument("--runs", nargs="+", default=None,
                     help="a subset of dry, drained, fast, undrained, slow (default: all)")
 parser.add_argument("--out", type=Path, default=Path("output/cptu_coupled"))
@@ -79,6 +81,8 @@ if args.seed is not None:
 scene = load_scene(args.scene, overrides)
 prm0 = replace(scene.parameters(), depth=args.depth)
 fluid0 = scene.fluid_parameters()
+if args.every is not None:
+    fluid0 = replace(fluid0, every=args.every)
 runs = {"dry": (None, args.fast),
         "drained": (args.k_drained, args.fast),
         "fast": (args.k, args.fast),

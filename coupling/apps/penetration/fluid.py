@@ -31,10 +31,11 @@ class FluidParameters:
         density: rho_f [kg/m^3] >= 0: the free grains' buoyancy ``-rho_f V g``.
         saturation_time: DEM time [s] >= 0 the settled window is given to take the buoyancy
             (ghosts and penetrator held, the fluid drained at the surface) before the push.
-        every: DEM steps per fluid step (dividing the FE step's substeps): the fluid's
-            forces are held over them, with its drag implicit in each step. 1 is the stable
-            choice measured in the 2D cone scenes (5 blew up in the loose window at k = 1e-11,
-            beta_f = 1e-6, after 25 mm of push).
+        every: DEM steps per fluid step (dividing the FE step's substeps). 1: the fluid's
+            forces held over a DEM step, its drag implicit in the next. More: each DEM step
+            between takes the last fluid step's response to the grains' displacement since
+            it (`coupling.apps.penetration.saturated.ChamberFlow.interval_forces`); held
+            forces alone blew up at 5 in the loose window (k = 1e-11, beta_f = 1e-6).
     """
 
     permeability: float = 1e-12

@@ -2,8 +2,8 @@
 driven by the window's grains and by the continuum, acting on the free grains.
 
 The pressure ``p`` (the deviation from hydrostatic) is one P1 field on the continuum's mesh,
-continuous across the overlap by construction, solved once per FE step by backward Euler
-(`coupling.pore_fluid.DarcyFlow`, seed 003 eq. 5.4-5.5):
+continuous across the overlap by construction, solved every ``fluid.every`` DEM steps by
+backward Euler (`coupling.pore_fluid.DarcyFlow`, seed 003 eq. 5.4-5.5):
 
     (n beta_f + (1 - w) / K) dp/dt + div v - div((k / mu_f) grad p) = 0,
 
@@ -14,8 +14,13 @@ coupling's prescribed nodes (a handshake inside its edge), falling linearly to 0
 node's support would reach past the grains (an element inside the ghost band's outer edge),
 0 in the continuum. Inside, the source is the grains' volumetric change (their volume-
 weighted mean velocity by the FE basis at their centroids, the penetrator's solid counted
-as a grain moving at its velocity) and the grains feel the seepage force ``-grad p`` and
-the implicit drag of `dem.drag.GroupDrag`. Outside, the continuum is *drained* as far as
+as a grain moving at its velocity) and the grains feel the seepage force ``-grad p``.
+Between fluid steps that force would lag the grains: with a fluid step every DEM step the
+implicit drag of `dem.drag.GroupDrag` holds the lag off; with one every few DEM steps
+(cheaper: measured below) every DEM step between adds the last step's response to the
+grains' displacement since it, beyond their going on at the rate it saw
+(:meth:`ChamberFlow.interval_forces`: the fluid's stiffness and Darcy resistance, one
+back-substitution with the step's factors). Outside, the continuum is *drained* as far as
 its mechanics go (it is the dry micropolar model: it does not feel p), and its volumetric
 strain rate ``div v_FE`` is the source with the skeleton's compressibility ``1 / K`` (K its
 plane-strain bulk modulus) as storage: the pressure there is the fixed-stress estimate of a
@@ -43,18 +48,15 @@ and falls with h (here faster than h^2): in the loose scene at V ~ 1, u2 read 13
 the fast run of demos/2d/cptu_coupled.py). Readings are credible where that error is below
 the effective stress (here V up to ~1 with 5 mm elements); at V ~ 30 it dominates.
 
-The permeability is the scene's everywhere outside the cone, also where the window holds no
-grains: a window that settled below its ghosts' top (scenes/cptu_2d.toml's loose one by 19
-mm, the dense cpt_2d.toml by 3 mm) has water above its grains inside the mesh, which the
-fluid treats as soil of permeability k (a Kozeny-Carman k(n) would free it, and amplify the
-porosity's scatter ~n^3 in the grains). The cone starts in that layer, so u2 reads pressure
-before the shoulder reaches the grains (after ~20 mm of push in the loose scene), and the
-drainage up through the layer is the soil's, slower than free water's. That layer makes most
-of the loose scene's u2: with k x 1000 at the window's nodes without grains (a scratch run,
-not in the code), u2 over 20-30 mm of push fell from 0.66 / 0.24 kPa to 0.004 / 0.03 kPa at
-V = 0.96 / 0.48 (the shoulder is then < 1 cm below the grains' surface: drained), q_t from
-3.2 / 1.7 to 3.5 / 2.5 kPa. Next: free water there, and a window deep enough for the
-shoulder to sit a few cone diameters in the grains.
+Above the grains the water is free: a window that settles below its ghosts' top (the loose
+scenes/cptu_2d.toml by 19 mm, the dense cpt_2d.toml by 3 mm) has water over its grains
+inside the mesh, and a node whose support holds less than half the window's median solid
+fraction (COVERED) takes up to FREE_WATER times the soil's permeability (1 / its cover).
+Before this the layer was soil of the scene's k, and it made most of the loose scene's u2:
+the cone starts in it, so u2 read pressure before the shoulder reached the grains, and the
+drainage up through it was the soil's (0.66 kPa at V ~ 1 over 20-30 mm of push; with the
+free layer 0.13 kPa over 20-45 mm). The shoulder is a grain radius into the grains after
+~38 mm of push in the loose scene (demos/2d/cptu_coupled.py pushes 45 mm).
 
 2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
 """
@@ -66,10 +68,13 @@ from dataclasses import replace
 
 import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
 import ufl
 from dolfinx import default_scalar_type, fem
+from dolfinx.fem.petsc import assemble_matrix, assemble_vector
+from scipy import sparse
 
 from coupling.apps.penetration.coupled import CoupledPenetration
 from coupling.apps.penetration.fluid import FluidParameters
@@ -78,11 +83,22 @@ from coupling.apps.penetration.penetrators import tip_height
 from coupling.locate import locate_owned, owner_ranks, relocate
 from coupling.pore_fluid import DarcyFlow, GrainSpace, PoreFluidParameters
 from dem.drag import group_means
+from dem.state import FREE
 
 __all__ = ["ChamberFlow", "SaturatedPenetration", "FluidParameters"]
 
 #: the penetrator's permeability over the soil's at full solid cover
 CONE_PERMEABILITY = 1e-3
+#: the permeability of free water over the soil's, where a window's node holds no grains
+#: (water above a window that settled below its ghosts' top): high enough that the layer
+#: drains as free water would next to the soil (measured: x 1000 brought the loose scene's u2
+#: with the shoulder still in the layer from 0.66 to 0.004 kPa; the layer's own k no longer
+#: matters past that)
+FREE_WATER = 1e3
+#: a node counts as fully in the grains once its solid fraction reaches this share of the
+#: window's median: the packing's own scatter (~10 % a node) then leaves k untouched, and
+#: only nodes less than half covered (the water layer, the surface's top row) see free water
+COVERED = 0.5
 #: the space of the porosity and solid velocity: P1, each node averaging the grains of its
 #: support (~20 grains; a window element holds ~3). Measured on the loose window pushed at
 #: V = 29: the pressures with DG0 cells were 3-5x those with P1 (the cells' velocity means
@@ -116,7 +132,11 @@ class ChamberFlow(DarcyFlow):
         self.cpt, self.fluid_prm = cpt, fluid
         params = PoreFluidParameters(viscosity=fluid.viscosity, compressibility=fluid.compressibility,
                                      density=fluid.density, permeability=fluid.permeability,
-                                     porosity_space=POROSITY_SPACE, porosity_min=0.02, porosity_max=0.98)
+                                     porosity_space=POROSITY_SPACE, porosity_min=0.02, porosity_max=0.98,
+                                     # a fluid step every DEM step: its lag held off by the
+                                     # implicit drag; every few: by interval_forces, whose
+                                     # flow response the drag would count again
+                                     implicit_drag="all" if fluid.every == 1 else "none")
         problem = cpt.problem
         super().__init__(problem.domain, cpt.sim, params, facet_tags=problem.facet_tags,
                          tag_names=problem.tag_names, particles=cpt.n_grains)
@@ -129,6 +149,10 @@ class ChamberFlow(DarcyFlow):
         self.weight = fem.Function(self.Vn, name="grain_weight")
         self.weight.x.array[:] = self._grain_weight(self.Vn.tabulate_dof_coordinates()[:, :gdim])
         self.cone_fraction = fem.Function(self.Vn, name="cone_fraction")
+        #: the grains' cover of each node, 1 in the packing and the continuum, 0 in free
+        #: water (:meth:`permeability`)
+        self.cover = fem.Function(self.Vn, name="grain_cover")
+        self.cover.x.array[:] = 1.0
         self.fe_velocity = fem.Function(self.Vv, name="continuum_velocity")
         self._k = fem.Constant(domain, default_scalar_type(fluid.permeability))
         #: the penetrator's speed [m/s] the fluid sees (0 while the window saturates)
@@ -151,7 +175,13 @@ class ChamberFlow(DarcyFlow):
         #: only the continuum's storage n beta_f, next to its (1 - w) / K)
         self.n0 = float(1.0 - domain.comm.allreduce(float(solid[:owned][inner].sum()))
                         / domain.comm.allreduce(float(self.lumped_mass[:owned][inner].sum())))
+        #: the median solid fraction of the window's nodes that hold grains (the cover's scale)
+        fraction = solid[:owned][inner] / self.lumped_mass[:owned][inner]
+        fraction = np.concatenate(domain.comm.allgather(fraction[fraction > 0]))
+        self.packed = float(np.median(fraction)) if fraction.size else 1.0
         self._cone_sums = (np.zeros_like(w), np.zeros((len(w), gdim)))
+        self._source_matrix = None   # int u . grad q dx (Vv -> Vp), for interval_forces
+        self._serial = None          # interval_forces' scipy products on one rank
         self._x_last = None   # the grains' positions at the last fluid step
         self._rate = None     # (n, 3) their displacement rate over it [m/s]
         self._step_dt = None
@@ -256,13 +286,116 @@ class ChamberFlow(DarcyFlow):
         self.porosity.x.array[:] = w * n_g + (1.0 - w) * self.n0
         self._clip_porosity()
         self.velocity.x.array[:] = (w[:, None] * v_g + (1.0 - w[:, None]) * v_c).ravel()
+        #: the part of it that is not the grains': the penetrator's and the continuum's
+        self._other_velocity = (w[:, None] * np.divide(SVc, S[:, None], out=np.zeros_like(SVc),
+                                                       where=S[:, None] > 0)
+                                + (1.0 - w[:, None]) * v_c).ravel()
         self.cone_fraction.x.array[:] = np.minimum(Sc / self.lumped_mass, 1.0)
+        grains = np.clip(solid / (COVERED * self.packed * self.lumped_mass), 0.0, 1.0)
+        self.cover.x.array[:] = w * grains + (1.0 - w)
         solid[:] = S   # the penetrator takes its share of the seepage force: the pressure on it
 
+    # ---- the undrained response between fluid steps ---------------------------------------
+    def _interval_set_up(self) -> None:
+        """At a fluid step: the grains' displacement's scale ``w / (S dt)`` on the grains'
+        space (the source's blend, as in :meth:`update_from_grains`, per unit time; 0 where
+        no solid is) and their share of a dof's force. The source matrix ``int u . grad q
+        dx`` is the mesh's, assembled once. On one rank the products are scipy's, the
+        grains' basis and the two scalings taken into one matrix each way (an interval step
+        is then ~5 small products and a back-substitution)."""
+        if self._source_matrix is None:
+            self._source_matrix = assemble_matrix(fem.form(ufl.inner(
+                ufl.TrialFunction(self.Vv), ufl.grad(ufl.TestFunction(self.Vp))) * ufl.dx))
+            self._source_matrix.assemble()
+            if self.domain.comm.size == 1:
+                self._serial = {"source": _scipy(self._source_matrix),
+                                "force": _scipy(self._force_matrix),
+                                "drained": np.unique(np.concatenate(
+                                    [bc.dof_indices()[0] for bc in self.bcs] or [[]])).astype(np.int64)}
+            # K p as the step's form less its storage: the same quadrature as the step's
+            # (UFL takes one degree for the whole form; K's own estimate is lower)
+            a, _ = self._forms()
+            storage = self._storage * self.porosity + self._inv_dt * self.skeleton_storage
+            self._flow_form = fem.form(ufl.action(a, self.p) - storage * self.p
+                                       * ufl.TestFunction(self.Vp) * ufl.dx)
+        vec = assemble_vector(self._flow_form)        # K p_s, the last pressure's flow
+        vec.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        other = self._work("interval_other", self.Vv)  # the penetrator's and continuum's source
+        other.x.array[:] = self._other_velocity
+        source = self._source_matrix.createVecLeft()
+        self._source_matrix.mult(other.x.petsc_vec, source)
+        self._flow_of_last = vec.array_r - source.array_r   # (owned dofs)
+        vec.destroy()
+        source.destroy()
+        S = self._work("solid", self.Vn).x.array      # the grains' and the penetrator's
+        scale = np.divide(self.weight.x.array, S * self._step_dt, out=np.zeros_like(S), where=S > 0)
+        floor = (1.0 - self.params.porosity_max) * self.lumped_mass
+        share = np.maximum(S, floor)
+        if self._serial is not None:   # (grain rows i of (m, 2) arrays ravel to 2 i + c)
+            N, two = self._grains.matrix(), sparse.identity(2, format="csr")
+            V = sparse.diags(self.volume[self._mine])
+            gather = sparse.kron(sparse.diags(scale) @ N @ V, two)
+            scatter = sparse.kron(V @ N.T @ sparse.diags(1.0 / share), two)
+            self._serial["to_source"] = (self._serial["source"] @ gather).tocsr()
+            self._serial["to_grains"] = (scatter @ self._serial["force"]).tocsr()
+        self._displacement_scale, self._share = scale, share
+
+    def interval_forces(self, elapsed: float) -> np.ndarray:
+        """(n, 3) [N] the change of the fluid's force on every grain ``elapsed`` [s] = tau
+        after the last fluid step (of dt, pressure p_s): the pressure change of a backward-
+        Euler step over tau from p_s, ``(M + tau K) dp = A du + tau (s - K p_s)`` (M the
+        storage, K the flow, A du the source of the grains' displacement du since the step,
+        blended on the mesh as the step's source, s the penetrator's and the continuum's
+        source at the step's rates), solved with the step's own factors ``M + dt K`` for
+        ``M + tau K``, handed out as the step's seepage force is. At tau = dt it is the
+        next step's change (to round-off, with the sources at its rates): exact in the
+        undrained limit (the storage's stiffness against a compaction) and for a steady
+        drained flow (A du = tau (K p_s - s): the held pressure stands), first order in
+        between.
+
+        Held over the interval the fluid's forces lag the grains by a fluid step: at every
+        DEM step this brings them the fluid's stiffness and its Darcy resistance, so the
+        fluid needs no implicit drag (collective; the same on every rank)."""
+        gdim, mine = 2, self._mine
+        if len(mine) == self.particles:   # (one rank: all of them, in order; a slice's views)
+            mine = slice(0, self.particles)
+        moved = self.sim.p.x[mine, :gdim] - self._x_last[mine, :gdim]
+        drain = elapsed / self._step_dt   # (the step's system is per unit time: A du / dt)
+        b, dp = self._work("interval_source", self.Vp), self._work("interval_dp", self.Vp)
+        out = np.zeros((self.sim.p.n, 3))
+        ops = self._serial
+        if ops is not None:
+            b.x.array[:] = ops["to_source"] @ moved.ravel() - drain * self._flow_of_last
+            b.x.array[ops["drained"]] = 0.0
+            self._problem.solver.solve(b.x.petsc_vec, dp.x.petsc_vec)   # (its factors reused)
+            out[mine, :gdim] = (ops["to_grains"] @ dp.x.array).reshape(-1, gdim)
+            return out
+        du = self._work("interval_du", self.Vv)
+        self._grains.sum_to(self.volume[mine, None] * moved, du)
+        # (the step's system is per unit time: its source the velocity du / dt)
+        du.x.array.reshape(-1, gdim)[:] *= self._displacement_scale[:, None]
+        self._source_matrix.mult(du.x.petsc_vec, b.x.petsc_vec)
+        owned = self.Vp.dofmap.index_map.size_local
+        b.x.array[:owned] -= drain * self._flow_of_last
+        for bc in self.bcs:                               # (p = 0 at the drained dofs)
+            bc.set(b.x.petsc_vec.array_w)
+        self._problem.solver.solve(b.x.petsc_vec, dp.x.petsc_vec)
+        dp.x.scatter_forward()
+        F = self._work("interval_force", self.Vv)
+        self._force_matrix.mult(dp.x.petsc_vec, F.x.petsc_vec)
+        F.x.scatter_forward()
+        F.x.array.reshape(-1, gdim)[:] /= self._share[:, None]
+        out[mine, :gdim] = self.volume[mine, None] * self._grains.at_grains(F)
+        if self.domain.comm.size > 1:     # each grain on one rank: an exact sum
+            self.domain.comm.Allreduce(MPI.IN_PLACE, out, op=MPI.SUM)
+        return out
+
     def permeability(self):
-        """The permeability k (1 - c), c the penetrator's area fraction (floored at
-        CONE_PERMEABILITY)."""
-        return self._k * ufl.max_value(1.0 - self.cone_fraction, CONE_PERMEABILITY)
+        """The permeability ``k (1 - c) / s``: c the penetrator's area fraction (1 - c
+        floored at CONE_PERMEABILITY), s the grains' cover (floored at 1 / FREE_WATER: free
+        water where a window's node holds no grains)."""
+        return (self._k * ufl.max_value(1.0 - self.cone_fraction, CONE_PERMEABILITY)
+                / ufl.max_value(self.cover, 1.0 / FREE_WATER))
 
     def set_permeability(self, k: float) -> None:
         """The soil's permeability k [m^2] from the next solve on (forms and drag)."""
@@ -278,6 +411,8 @@ class ChamberFlow(DarcyFlow):
         displacement rate the fluid saw), and the penetrator's share of ``-int grad p dx``
         (:attr:`cone_force`)."""
         super().apply_forces()
+        if self.fluid_prm.every > 1:
+            self._interval_set_up()
         if self.drag is not None and self._rate is not None:
             self.drag.u_ref[:] = group_means(self._rate, self.drag.group, self.volume,
                                              len(self.drag.u_ref))
@@ -312,6 +447,12 @@ class ChamberFlow(DarcyFlow):
         return out
 
 
+def _scipy(A):
+    """A PETSc matrix of one rank as scipy CSR."""
+    indptr, indices, values = A.getValuesCSR()
+    return sparse.csr_matrix((values, indices, indptr), shape=A.getSize())
+
+
 class _Tracked:
     """Points moving over a fixed mesh and a space's basis at them: located anew only when
     one of this rank's left its cells (as `DarcyFlow.grains_to_mesh` does for the grains)."""
@@ -342,8 +483,9 @@ class SaturatedPenetration(CoupledPenetration):
     (:class:`ChamberFlow`): after the set-up the window takes its buoyancy for
     ``fluid.saturation_time`` (ghosts and penetrator held, the fluid drained at the
     surface; the grains' reference positions are then taken again: the continuum models the
-    increment from the saturated state), then each FE step solves the fluid once before
-    its DEM sub-cycle, whose every step takes the implicit drag. The history records add
+    increment from the saturated state), then each FE step solves the fluid before its DEM
+    sub-cycle and every ``fluid.every`` DEM steps in it; the DEM steps between take the
+    implicit drag (every = 1) or the interval's forces (every > 1). The history records add
     u1, u2, u_max, q_u and q_t = q_c + q_u (:meth:`ChamberFlow.readings`). Loose exchange,
     no checkpoints (the fluid's state is not in them)."""
 
@@ -405,8 +547,8 @@ class SaturatedPenetration(CoupledPenetration):
     def _before_sub_cycle(self, hook):
         """A fluid step now (the grains and the continuum as they are), read at the FE step's
         start; the returned hook of the sub-cycle's DEM steps solves the fluid again every
-        ``fluid.every`` DEM steps and applies the last fluid step's implicit drag in each,
-        then ``hook``."""
+        ``fluid.every`` DEM steps and applies the last fluid step's implicit drag (every =
+        1) or the interval's forces (every > 1) in the others, then ``hook``."""
         self._fluid_step()
         self._readings = self.flow.readings()
         count = 0
@@ -416,10 +558,23 @@ class SaturatedPenetration(CoupledPenetration):
             count += 1
             if count % self.fluid.every == 0 and count < self.prm.substeps:
                 self._fluid_step()
+            elif self.fluid.every > 1:
+                self._interval_step(((count - 1) % self.fluid.every + 1) * self.sim.dt)
             if self.flow.drag is not None:
                 self.flow.drag.apply(self.sim)
             return bool(hook()) if hook is not None else False
         return fluid_hook
+
+    def _interval_step(self, elapsed: float) -> None:
+        """The fluid's force change ``elapsed`` [s] after its last step, added to the free
+        grains' forces of this DEM step (:meth:`ChamberFlow.interval_forces`)."""
+        t0 = time.perf_counter()
+        sim = self.sim
+        f = self.flow.interval_forces(elapsed)
+        free = sim.p.kind == FREE
+        sim.p.force[free] += f[free]
+        sim.forced[free] = 1
+        self.fluid_time += time.perf_counter() - t0
 
     def advance(self) -> dict:
         record = super().advance()
