@@ -27,7 +27,8 @@ import pytest
 
 import dem
 from dem.packing import lattice_packing
-from dem.parallel import DistributedSimulation, _differs_across_ranks
+from dem.parallel import DistributedSimulation
+from dem.parallel.simulation import _differs_across_ranks
 
 R, RHO, SETTLE, PUSH = 1.0e-3, 2650.0, 400, 200
 
