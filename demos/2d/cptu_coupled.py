@@ -16,13 +16,17 @@ This demo shows how to:
   undrained permeability at the fast rate, and the dry run beside,
 - write ``results.json`` and ``cptu_coupled.png`` (u2 and q_c against depth) to ``--out``.
 
-Run: ``NUMBA_NUM_THREADS=1 python demos/2d/cptu_coupled.py`` (one core: 11 min wall on a
-shared machine; CPU 10 s set-up and 90-150 s push a saturated run, the fluid solved every DEM
-step); ``GRANFE_SHORT=1``: a small window and cone (the tests' scene), dry, drained and
-undrained only, ~1 min. The continuum is drained as far as its mechanics go (the dry
-micropolar model; its pressure is the fixed-stress estimate from its volumetric strain),
-and the pressure round the cone is not mesh-converged (largest at V ~ 30): see the module
-docstring of `coupling.apps.penetration.saturated`.
+Run: ``NUMBA_NUM_THREADS=1 python demos/2d/cptu_coupled.py`` (one core: ~10 min wall;
+CPU ~9 s set-up and ~100 s push a saturated run with the fluid solved every DEM step, 6 s
+the dry push); ``--every 25``: a fluid step every 25 DEM steps, the DEM steps between
+taking the interval's forces (`ChamberFlow.interval_forces`): 20 s a push, the same q_c
+and u2 within the packings' scatter at V ~ 1 (3 packings), not yet stable undrained at
+this rate (V = 32 blew up; --every 5 runs). ``GRANFE_SHORT=1``: a small window and cone
+(the tests' scene), dry, drained and undrained only, ~10 s. The continuum is drained as
+far as its mechanics go (the dry micropolar model; its pressure is the fixed-stress
+estimate from its volumetric strain), and the pressure round the cone is not
+mesh-converged (largest at V ~ 30): see the module docstring of
+`coupling.apps.penetration.saturated`.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -43,6 +48,9 @@ from coupling.apps.penetration.coupled import CoupledPenetration
 from coupling.apps.penetration.penetrators import filtered, tip_height
 from coupling.apps.penetration.saturated import SaturatedPenetration
 from coupling.scene import load_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))   # (the repository: benchmarks/)
+from benchmarks.machine import machine  # noqa: E402
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"
 
@@ -170,7 +178,7 @@ if comm.rank == 0:
     args.out.mkdir(parents=True, exist_ok=True)
     summary = {name: {k: v for k, v in rec.items() if not isinstance(v, list)} for name, rec in results.items()}
     (args.out / "results.json").write_text(json.dumps(
-        {"scene": str(args.scene), "depth": args.depth, "short": SHORT, "wall_s": wall,
+        {"scene": str(args.scene), "depth": args.depth, "short": SHORT, "wall_s": wall, "machine": machine(),
          "runs": results, "summary": summary}, indent=1))
     figure(args.out / "cptu_coupled.png")
     log(f"{wall:.0f} s wall; outputs in {args.out}")

@@ -45,7 +45,8 @@ velocity misses the isochoric flow round the cone by O(v / R) over an element: a
 pressure of order ``(mu_f / k) (v / R) h^2``, the mesh's, not the soil's. It grows with V
 and falls with h (here faster than h^2): in the loose scene at V ~ 1, u2 read 13.9 / 1.9 /
 0.6 kPa with 8 / 6 / 5 mm elements (R = 10 mm; means over depths 20-30 mm, one packing,
-the fast run of demos/2d/cptu_coupled.py). Readings are credible where that error is below
+the fast run of demos/2d/cptu_coupled.py, measured while the water above the grains was
+soil, below). Readings are credible where that error is below
 the effective stress (here V up to ~1 with 5 mm elements); at V ~ 30 it dominates.
 
 Above the grains the water is free: a window that settles below its ghosts' top (the loose
@@ -55,8 +56,9 @@ fraction (COVERED) takes up to FREE_WATER times the soil's permeability (1 / its
 Before this the layer was soil of the scene's k, and it made most of the loose scene's u2:
 the cone starts in it, so u2 read pressure before the shoulder reached the grains, and the
 drainage up through it was the soil's (0.66 kPa at V ~ 1 over 20-30 mm of push; with the
-free layer 0.13 kPa over 20-45 mm). The shoulder is a grain radius into the grains after
-~38 mm of push in the loose scene (demos/2d/cptu_coupled.py pushes 45 mm).
+free layer 0.23 / 0.05 / -0.01 kPa over 22-45 mm in three packings). The shoulder is a
+grain radius into the grains after ~38 mm of push in the loose scene
+(demos/2d/cptu_coupled.py pushes 45 mm).
 
 2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
 """
