@@ -16,12 +16,12 @@ This demo shows how to:
   undrained permeability at the fast rate, and the dry run beside,
 - write ``results.json`` and ``cptu_coupled.png`` (u2 and q_c against depth) to ``--out``.
 
-Run: ``NUMBA_NUM_THREADS=1 python demos/2d/cptu_coupled.py`` (one core: ~10 min wall;
-CPU ~9 s set-up and ~100 s push a saturated run with the fluid solved every DEM step, 6 s
-the dry push); ``--every 25``: a fluid step every 25 DEM steps, the DEM steps between
-taking the interval's forces (`ChamberFlow.interval_forces`): 20 s a push, the same q_c
-and u2 within the packings' scatter at V ~ 1 (3 packings), not yet stable undrained at
-this rate (V = 32 blew up; --every 5 runs). ``GRANFE_SHORT=1``: a small window and cone
+Run: ``NUMBA_NUM_THREADS=1 python demos/2d/cptu_coupled.py`` (one core: ~6 min wall;
+CPU ~9 s set-up and 18-37 s push a saturated run with the scene's fluid step every 25 DEM
+steps, the DEM steps between taking the interval's forces
+(`ChamberFlow.interval_forces`), 6 s the dry push); ``--every 1``: the fluid every DEM
+step, ~110 s a push, the same q_c and u2 within the packings' scatter at V ~ 1.
+``GRANFE_SHORT=1``: a small window and cone
 (the tests' scene), dry, drained and undrained only, ~10 s. The continuum is drained as
 far as its mechanics go (the dry micropolar model; its pressure is the fixed-stress
 estimate from its volumetric strain), and the pressure round the cone is not

@@ -270,6 +270,29 @@ def test_the_interval_force_is_the_next_fluid_steps_response(k):
     assert (du * predicted).sum() < 0
 
 
+def test_a_grain_outside_the_window_takes_no_seepage_force():
+    """The grains carry the skeleton by their weight w (1 in the window, 0 beyond the ghost
+    band): a grain that strays into the continuum feels its buoyancy alone, not the whole
+    node's seepage force (which it took before, and which flung grains out of the mesh)."""
+    s = scene({"saturation_time": 0.0})
+    cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
+    flow, sim = cpt.flow, cpt.sim
+    flow.step(cpt.fluid.every * sim.dt)
+    x = sim.p.x[:cpt.n_grains]
+    i = int(np.flatnonzero(sim.p.kind[:cpt.n_grains] == FREE)[np.argmax(x[sim.p.kind[:cpt.n_grains] == FREE, 1]
+                                                                   < -0.02)])
+    stray = x[i].copy()
+    stray[0] = 0.06                                     # beyond the window's band, in the mesh
+    assert flow._grain_weight(stray[None, :2])[0] == 0.0
+    sim.p.x[i] = stray
+    flow.step(cpt.fluid.every * sim.dt)
+    buoyancy = -flow.params.density * flow.volume[i] * sim.gravity
+    np.testing.assert_allclose(flow.forces[i], buoyancy, rtol=1e-12, atol=1e-15)
+    inside = np.flatnonzero(flow._grain_weight(x[:, :2]) >= 1.0)
+    seepage = flow.forces[inside] + flow.params.density * flow.volume[inside, None] * sim.gravity
+    assert np.abs(seepage).max() > 0                    # (the window's grains do feel it)
+
+
 @pytest.mark.mpi
 def test_ranks_equal_serial():
     """The saturated window's fluid (no saturation time: the same grains on every rank count):

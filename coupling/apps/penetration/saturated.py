@@ -14,7 +14,9 @@ coupling's prescribed nodes (a handshake inside its edge), falling linearly to 0
 node's support would reach past the grains (an element inside the ghost band's outer edge),
 0 in the continuum. Inside, the source is the grains' volumetric change (their volume-
 weighted mean velocity by the FE basis at their centroids, the penetrator's solid counted
-as a grain moving at its velocity) and the grains feel the seepage force ``-grad p``.
+as a grain moving at its velocity) and the grains feel the seepage force ``-grad p`` by
+their weight w (in the overlap the continuum would carry the rest; its mechanics are
+drained, so that part is dropped).
 Between fluid steps that force would lag the grains: with a fluid step every DEM step the
 implicit drag of `dem.drag.GroupDrag` holds the lag off; with one every few DEM steps
 (cheaper: measured below) every DEM step between adds the last step's response to the
@@ -337,7 +339,7 @@ class ChamberFlow(DarcyFlow):
             N, two = self._grains.matrix(), sparse.identity(2, format="csr")
             V = sparse.diags(self.volume[self._mine])
             gather = sparse.kron(sparse.diags(scale) @ N @ V, two)
-            scatter = sparse.kron(V @ N.T @ sparse.diags(1.0 / share), two)
+            scatter = sparse.kron(V @ N.T @ sparse.diags(self.weight.x.array / share), two)
             self._serial["to_source"] = (self._serial["source"] @ gather).tocsr()
             self._serial["to_grains"] = (scatter @ self._serial["force"]).tocsr()
         self._displacement_scale, self._share = scale, share
@@ -386,11 +388,20 @@ class ChamberFlow(DarcyFlow):
         F = self._work("interval_force", self.Vv)
         self._force_matrix.mult(dp.x.petsc_vec, F.x.petsc_vec)
         F.x.scatter_forward()
-        F.x.array.reshape(-1, gdim)[:] /= self._share[:, None]
+        F.x.array.reshape(-1, gdim)[:] *= (self.weight.x.array / self._share)[:, None]
         out[mine, :gdim] = self.volume[mine, None] * self._grains.at_grains(F)
         if self.domain.comm.size > 1:     # each grain on one rank: an exact sum
             self.domain.comm.Allreduce(MPI.IN_PLACE, out, op=MPI.SUM)
         return out
+
+    def _seepage_per_volume(self) -> fem.Function:
+        """The grains' share of each dof's seepage force per grain volume, weighted by w: in
+        the overlap the grains carry the skeleton by w, the continuum by 1 - w (its share is
+        dropped: its mechanics are drained), and outside the window a grain that strays there
+        takes none (it took the whole node's, the continuum's, before)."""
+        g = super()._seepage_per_volume()
+        g.x.array.reshape(-1, 2)[:] *= self.weight.x.array[:, None]
+        return g
 
     def permeability(self):
         """The permeability ``k (1 - c) / s``: c the penetrator's area fraction (1 - c
