@@ -93,7 +93,7 @@ def locate_owned(
     n_owned = mesh.topology.index_map(tdim).size_local
     cells = np.full(x.shape[0], -1, dtype=np.int32)
     if x.shape[0]:
-        tree = tree or cell_tree(mesh, padding)
+        tree = tree if tree is not None else cell_tree(mesh, padding)
         candidates = dolfinx.geometry.compute_collisions_points(tree, x)
         colliding = dolfinx.geometry.compute_colliding_cells(mesh, candidates, x)
         for i in range(x.shape[0]):
@@ -208,7 +208,7 @@ def relocate(
     if left.size:
         tdim = mesh.topology.dim
         n_owned = mesh.topology.index_map(tdim).size_local
-        tree = tree or cell_tree(mesh, padding)
+        tree = tree if tree is not None else cell_tree(mesh, padding)
         candidates = dolfinx.geometry.compute_collisions_points(tree, x[left])
         colliding = dolfinx.geometry.compute_colliding_cells(mesh, candidates, x[left])
         for k, i in enumerate(left):

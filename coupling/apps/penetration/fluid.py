@@ -36,8 +36,8 @@ class FluidParameters:
             between takes the last fluid step's response to the grains' displacement since
             it (`coupling.apps.penetration.saturated.ChamberFlow.interval_forces`); held
             forces alone blew up at 5 in the loose window (k = 1e-11, beta_f = 1e-6).
-            scenes/cptu_2d.toml takes 25: q_c and u2 within the packings' scatter of every
-            DEM step's at V ~ 1, at a sixth of the CPU.
+            scenes/cptu_2d.toml takes 25: at V ~ 1 (3 packings) q_c 10 % below every DEM
+            step's on average, u2 alike, at a sixth of the CPU.
     """
 
     permeability: float = 1e-12

@@ -19,8 +19,8 @@ their weight w (in the overlap the continuum would carry the rest; its mechanics
 drained, so that part is dropped).
 Between fluid steps that force would lag the grains: with a fluid step every DEM step the
 implicit drag of `dem.drag.GroupDrag` holds the lag off; with one every few DEM steps
-(cheaper: measured below) every DEM step between adds the last step's response to the
-grains' displacement since it, beyond their going on at the rate it saw
+(cheaper) every DEM step between adds the last step's response to the grains'
+displacement since it and the drainage of its pressure over the time since
 (:meth:`ChamberFlow.interval_forces`: the fluid's stiffness and Darcy resistance, one
 back-substitution with the step's factors). Outside, the continuum is *drained* as far as
 its mechanics go (it is the dry micropolar model: it does not feel p), and its volumetric
@@ -312,10 +312,7 @@ class ChamberFlow(DarcyFlow):
                 ufl.TrialFunction(self.Vv), ufl.grad(ufl.TestFunction(self.Vp))) * ufl.dx))
             self._source_matrix.assemble()
             if self.domain.comm.size == 1:
-                self._serial = {"source": _scipy(self._source_matrix),
-                                "force": _scipy(self._force_matrix),
-                                "drained": np.unique(np.concatenate(
-                                    [bc.dof_indices()[0] for bc in self.bcs] or [[]])).astype(np.int64)}
+                self._serial = {"source": _scipy(self._source_matrix), "force": _scipy(self._force_matrix)}
             # K p as the step's form less its storage: the same quadrature as the step's
             # (UFL takes one degree for the whole form; K's own estimate is lower)
             a, _ = self._forms()
@@ -370,7 +367,8 @@ class ChamberFlow(DarcyFlow):
         ops = self._serial
         if ops is not None:
             b.x.array[:] = ops["to_source"] @ moved.ravel() - drain * self._flow_of_last
-            b.x.array[ops["drained"]] = 0.0
+            for bc in self.bcs:                           # (p = 0 at the drained dofs)
+                bc.set(b.x.array)
             self._problem.solver.solve(b.x.petsc_vec, dp.x.petsc_vec)   # (its factors reused)
             out[mine, :gdim] = (ops["to_grains"] @ dp.x.array).reshape(-1, gdim)
             return out
