@@ -612,6 +612,10 @@ class GrainSpace:
         out.x.scatter_reverse(la.InsertMode.add)
         out.x.scatter_forward()
 
+    def rows(self):
+        """(dofs (m, nd), basis values (m, nd)) of this rank's grains: N's entries by grain."""
+        return self._cols, self._w
+
     def matrix(self):
         """N as a sparse (local dofs, this rank's grains) matrix (scipy CSR), for callers
         that apply it many times between two evaluations (no ghost sums: one rank's)."""

@@ -52,16 +52,18 @@ class GhostMotion:
 
 
 def sub_cycle(sim, substeps: int, penetrator, depth: float, velocity: float, axis: int,
-              ghosts: GhostMotion | None = None, hook=None) -> float:
+              ghosts: GhostMotion | None = None, hook=None, **step) -> float:
     """Advance ``sim`` by ``substeps`` DEM steps in one call; returns the new depth [m].
 
     penetrator: (rows (k,), x0 (k, 3)): the clump's GHOST particles and their positions at
     depth 0 [m]; it is pushed down ``axis`` (its positions ``x0 - depth e_axis``) at
     ``velocity`` [m/s], from ``depth`` [m] on, ``velocity dt`` deeper at each DEM step.
     ghosts: the ghosts' motion over the FE step (None: no ghosts, the full-DEM run).
-    hook: called after each DEM step's force pass (`dem.Simulation.step`)."""
+    hook: called after each DEM step's force pass; ``step``: further keyword arguments of
+    `dem.Simulation.step` (a drag, a response, a pause between steps)."""
     rows, x0 = penetrator
     down = np.eye(3)[axis]
     cone = Translated(rows, x0, down, offset=-depth, speed=-velocity)
-    sim.step(substeps, hook=hook, prescribed=Prescribed(cone, None if ghosts is None else ghosts.motion()))
+    sim.step(substeps, hook=hook, prescribed=Prescribed(cone, None if ghosts is None else ghosts.motion()),
+             **step)
     return -float(cone.offsets(substeps, sim.dt)[-1])

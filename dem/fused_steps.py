@@ -17,6 +17,7 @@ from dem.drag import group_drag
 from dem.forces import _pair_csr, _wall_all
 from dem.ledger import _external_work, _gather_ghosts, _gather_rows, _ghost_work, _wall_work
 from dem.prescribed import _prescribe
+from dem.response import linear_response
 from dem.verlet import _add_external, _drift, _kick, _kick_drift
 
 # The fused stepping loop: `Simulation.step` without a hook, damping or a periodic cell, on
@@ -69,8 +70,8 @@ def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, iner
            h, dt, x0, hit, radius, material, table, start, pj32, live, hist, slip, etan, wi,
            ww, wp, wn, wu, wcol, whist, wslip, wetan, wf, wf_prev, wp_at, wforce, wp0, skin,
            ext, erows, ef, ex0, drag, dgroup, dweight, dwdt_m, dalpha, daxes, dscale, dshift,
-           dsu, dout, presc, pr_rows, pr_group, pr_base, pr_a, pr_b, pr_vel, pr_om,
-           pr_setom, pr_coef, gh, gprev, gnow, xg_at, xg_now, st, ist):
+           dsu, dout, resp, rsp, pause_every, presc, pr_rows, pr_group, pr_base, pr_a, pr_b,
+           pr_vel, pr_om, pr_setom, pr_coef, gh, gprev, gnow, xg_at, xg_now, st, ist):
     """Steps s, s + 1, ... of a `Simulation.step` call of n steps, until n are done, a
     blow-up check is due (after the step that ends on a multiple of check_every: its second
     half-kick is `_kick`, the next drift is left to the next call) or the neighbour list
@@ -80,6 +81,9 @@ def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, iner
     last ones wf_prev, points at the last pass wp_at, wforce = the walls' force rows),
     external forces if ext (rows erows, forces ef, positions at the last pass ex0), a
     group drag if drag (`dem.drag.GroupDrag`'s arrays, applied where `step` applies it),
+    a linear response if resp (rsp: `dem.response.LinearResponse.arrays`, applied after the
+    drag), a pause after every pause_every-th step of the call (> 0: the step ends with
+    `_kick` and the call returns, as for a check),
     prescribed motions if presc (`dem.prescribed.Prescribed.pack`), the GHOST rows gh
     (force rows of the last pass gprev, valid if ist[3], and of this one gnow (ng, 15);
     positions at the last pass xg_at and at this one xg_now (ng, 3)). st (13,) float:
@@ -128,9 +132,12 @@ def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, iner
         if drag:
             group_drag(v, force, g, dt, dgroup, dweight, dwdt_m, dalpha, daxes, dscale, dshift,
                        dsu, dout, hit)
+        if resp:
+            linear_response(x, force, kind, hit, *rsp)
         e = e1 + e2
         es = s1 + s2
-        final = s == n - 1 or (nsteps + 1) % check_every == 0
+        final = s == n - 1 or (nsteps + 1) % check_every == 0 or (
+            pause_every > 0 and (s + 1) % pause_every == 0)
         if final:
             wc1, we1, wd1, wg = _kick(v, omega, force, torque, fe, fd, td, mass, inertia, kind,
                                       g, h, hit)

@@ -44,6 +44,13 @@ __all__ = ["Simulation"]
 _NO_L, _NO_O, _EMPTY = np.zeros((3, 3)), np.zeros(3), np.zeros((0, 3))
 _NO_DRAG = (False, np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(3),
             np.zeros(0), _EMPTY, _EMPTY, _EMPTY)   # the types of `GroupDrag.arrays`
+_I0, _F0 = np.zeros(0, np.int64), np.zeros(0)
+_I32 = np.zeros(0, np.int32)
+_I2, _F2 = np.zeros((0, 1), np.int64), np.zeros((0, 1))
+_NO_RESPONSE = (_I0, np.zeros((0, 2)), _I2, _F2, _F2, _I0, _I32, _F0, _F0, _I0, _I32, _F0, _I0,
+                _I32, _F0, _F0, _I0, _I0, _I0, _I32, _F0, np.zeros(1, np.int64), _F0, _F0, _F0,
+                _F0, _F0, _F0, _EMPTY)
+"""The types of `dem.response.LinearResponse.arrays`."""
 _NO_PK = (np.zeros(0, np.int64), np.zeros(0, np.int64), _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY,
           np.zeros(0, np.bool_), np.zeros((1, 1, 2)))
 """`dem.prescribed.Prescribed.pack` of no motion (the types `_steps` takes)."""
@@ -51,6 +58,25 @@ _NO_PK = (np.zeros(0, np.int64), np.zeros(0, np.int64), _EMPTY, _EMPTY, _EMPTY, 
 KD_PARALLEL_MIN = 4096
 """Particles from which, with more than one numba thread, `_kick_drift_par` runs (below, a
 thread rendezvous costs more than the pass; see `dem.forces.PARALLEL_MIN`)."""
+
+
+def _pause_every(every, pause) -> int:
+    every = int(every) if pause is not None else 0
+    if every < 0:
+        raise ValueError(f"Simulation.step: pause_every must be >= 0, got {every}")
+    return every
+
+
+def _apply(sim, *extras) -> None:
+    """Apply a step's drag and response (those not None) after its force pass."""
+    for extra in extras:
+        if extra is not None:
+            extra.apply(sim)
+
+
+def _due(done: int, every: int) -> bool:
+    """Whether a pause follows the step that makes ``done`` steps of the call."""
+    return every > 0 and done % every == 0
 
 
 class Simulation(EnergyLedger, SimulationState):
@@ -341,7 +367,7 @@ class Simulation(EnergyLedger, SimulationState):
 
     # ---------------------------------------------------------------- stepping
     def step(self, n: int = 1, hook=None, prescribed=None, decay: float | None = None,
-             drag=None):
+             drag=None, response=None, pause_every: int = 0, pause=None):
         """Advance n steps of dt (velocity Verlet), with blow-up and domain checks.
 
         Between two steps of one call (unless a check falls in between) the second
@@ -360,7 +386,12 @@ class Simulation(EnergyLedger, SimulationState):
         kinetic energy it takes out booked as dissipated and summed in ``damping_removed``.
         ``drag``: a `dem.drag.GroupDrag` applied in every step where a hook would run
         (before ``hook``), in the fused loop too (a hook applying it costs the Python loop:
-        +20-35 % a step at 0.5-2k grains). Returns the number of steps done."""
+        +20-35 % a step at 0.5-2k grains). ``response``: a `dem.response.LinearResponse`
+        applied after the drag, in the fused loop too. ``pause()`` runs between steps after
+        every ``pause_every``-th step of the call (not after the last): the call's motions
+        and loop go on after it, where a caller would otherwise split the call (a fluid step
+        every few DEM steps, which may set external forces or a new response's reference).
+        Returns the number of steps done."""
         p, dt, cell = self.p, self.dt, self.cell
         pk = None if prescribed is None else prescribed.pack(int(n), dt, p.kind)
         h = 0.5 * dt
@@ -380,15 +411,19 @@ class Simulation(EnergyLedger, SimulationState):
         pending = None  # (works of the old forces, largest squared displacement) of a drift
         gprev = None  # ghost rows of the forces the drift cleared
         fused = hook is None and decay is None and cell is None and self._plain_loop()
+        pause_every = _pause_every(pause_every, pause)
         s = 0
         while s < n:
             if fused:  # as many steps as it can in one numba call (`_steps`)
-                k, pending, gprev = self._fused(s, n, pending, pk, gprev, drag)
+                k, pending, gprev = self._fused(s, n, pending, pk, gprev, drag, response,
+                                                pause_every)
                 s += k
                 if k and self.nsteps % self.check_every == 0:
                     self._check()
                 if s == n:
                     break
+                if k and pending is None and _due(s, pause_every):
+                    pause()
                 if k and pending is None:
                     continue
                 # a neighbour build is due before this step's force pass (its drift
@@ -412,15 +447,16 @@ class Simulation(EnergyLedger, SimulationState):
             self._wf_prev[:] = self._wf
             e, es = self._evaluate(True, d2 if cell is None else None, s == 0)
             gnow = self._ghost_rows(rowbuf[1] if gprev is rowbuf[0] else rowbuf[0]) if ghosts else None
-            if drag is not None:
-                drag.apply(self)
+            _apply(self, drag, response)
             last = hook is not None and bool(hook())
             if len(self._ghosts) != ng:   # the buffers (and the numba gathers) are sized for ng
                 raise RuntimeError("Simulation.step: the hook changed the set of GHOST rows; "
                                    "change kinds between step calls")
             # of this force pass (before the next step's motions)
             now = self._positions(posbuf[s % 2] if ghosts else None)
-            if last or s == n - 1 or (self.nsteps + 1) % self.check_every == 0 or decay is not None:
+            paused = _due(s + 1, pause_every)
+            if (last or s == n - 1 or (self.nsteps + 1) % self.check_every == 0 or decay is not None
+                    or paused):
                 wc1, we1, wd1, wg = _kick(p.v, p.omega, *acc, *prm, self._hit)
                 pending = None
             else:
@@ -440,6 +476,8 @@ class Simulation(EnergyLedger, SimulationState):
             if last:
                 n = s
                 break
+            if paused and s < n:
+                pause()
         if self.nsteps % self.check_every:
             self._check()
         return n
@@ -452,7 +490,7 @@ class Simulation(EnergyLedger, SimulationState):
         cls = type(self)
         return all(getattr(cls, m) is getattr(Simulation, m) for m in self._LOOP_METHODS)
 
-    def _fused(self, s, n, pending, pk, gprev, drag=None):
+    def _fused(self, s, n, pending, pk, gprev, drag=None, response=None, pause_every=0):
         """Steps s, s + 1, ... of a `step` call of n steps in `_steps` (no hook, damping or
         cell: the caller checks), if the serial drivers are the ones `_evaluate` would run.
         pk: the packed prescribed motions or None; gprev: the GHOST rows' forces of the
@@ -490,7 +528,9 @@ class Simulation(EnergyLedger, SimulationState):
                w.velocity, w.table_columns(len(self.materials)), nl.whist, nl.wslip,
                nl.wetan, self._wf, self._wf_prev, wp_at, w.force,
                nl._wp0 if nw else _EMPTY, nl.skin, ext, erows, ef, ex0,
-               *(_NO_DRAG if drag is None else (True, *drag.arrays(self))), pk is not None,
+               *(_NO_DRAG if drag is None else (True, *drag.arrays(self))),
+               response is not None, _NO_RESPONSE if response is None else response.arrays(),
+               pause_every, pk is not None,
                *(_NO_PK if pk is None else pk), gh, gbuf, np.empty((ng, 15)), xg_at,
                np.empty((ng, 3)), st, ist)
         done = int(ist[2])

@@ -332,3 +332,44 @@ def test_interval_forces_ranks_equal_serial():
     serial, ranks = build(MPI.COMM_SELF), build(MPI.COMM_WORLD)
     assert np.abs(serial).max() > 0
     np.testing.assert_allclose(ranks, serial, rtol=0, atol=1e-8 * np.abs(serial).max())
+
+
+def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch):
+    """On one rank the DEM steps between fluid steps take the interval's forces as the DEM's
+    linear response (`ChamberFlow.interval_response`, in the fused step loop): at the k-th
+    DEM step after a fluid step it adds ``interval_forces(k dt)`` to round-off (SuperLU's
+    factors for PETSc's: 1e-9 measured to ~1e-13), and a push through it equals a push
+    through the interval hook (the Python step loop; the path of 2 ranks) to round-off of
+    the same, grown by the chaotic packing over 3 FE steps (1e-6 of q_c)."""
+    s = scene({"saturation_time": 0.0, "every": 10})
+    cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
+    flow, sim = cpt.flow, cpt.sim
+    flow.step(cpt.fluid.every * sim.dt)
+    rng = np.random.default_rng(5)
+    free = np.flatnonzero(sim.p.kind[:cpt.n_grains] == FREE)
+    sim.p.x[free, :2] += 1e-7 * rng.standard_normal((len(free), 2))
+    response = flow.interval_response()
+    rows = response.rows
+    for k in (1, 2, 3):
+        response.apply(sim)
+        f = flow.interval_forces(k * sim.dt)[rows]
+        f[sim.p.kind[rows] != FREE] = 0.0
+        np.testing.assert_allclose(response.force, f, rtol=0, atol=1e-9 * np.abs(f).max())
+    response.withdraw(sim)
+
+    def push(hooked):
+        s = scene({"every": 10})
+        cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
+        if hooked:   # an exchange hook (one that does nothing) takes the Python loop
+            plain = cpt._before_sub_cycle
+            monkeypatch.setattr(cpt, "_before_sub_cycle", lambda hook: plain(lambda: False))
+        calls = []
+        step = cpt.sim.step
+        monkeypatch.setattr(cpt.sim, "step", lambda n, **kw: calls.append(kw) or step(n, **kw))
+        q = [cpt.advance()["q_c"] for _ in range(3)]
+        assert ("response" in calls[-1]) != hooked and calls[-1]["pause_every"] == 10
+        return np.array(q)
+
+    fused, hooked = push(False), push(True)
+    assert np.abs(fused).max() > 0
+    np.testing.assert_allclose(fused, hooked, rtol=1e-6)

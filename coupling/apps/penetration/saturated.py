@@ -87,6 +87,8 @@ from coupling.apps.penetration.penetrators import tip_height
 from coupling.locate import locate_owned, owner_ranks, relocate
 from coupling.pore_fluid import DarcyFlow, GrainSpace, PoreFluidParameters
 from dem.drag import group_means
+from dem.ldl import LDL
+from dem.response import LinearResponse
 from dem.state import FREE
 
 __all__ = ["ChamberFlow", "SaturatedPenetration", "FluidParameters"]
@@ -186,6 +188,7 @@ class ChamberFlow(DarcyFlow):
         self._cone_sums = (np.zeros_like(w), np.zeros((len(w), gdim)))
         self._source_matrix = None   # int u . grad q dx (Vv -> Vp), for interval_forces
         self._serial = None          # interval_forces' scipy products on one rank
+        self.response = None         # interval_response's (one rank)
         self._x_last = None   # the grains' positions at the last fluid step
         self._rate = None     # (n, 3) their displacement rate over it [m/s]
         self._step_dt = None
@@ -332,13 +335,11 @@ class ChamberFlow(DarcyFlow):
         scale = np.divide(self.weight.x.array, S * self._step_dt, out=np.zeros_like(S), where=S > 0)
         floor = (1.0 - self.params.porosity_max) * self.lumped_mass
         share = np.maximum(S, floor)
-        if self._serial is not None:   # (grain rows i of (m, 2) arrays ravel to 2 i + c)
-            N, two = self._grains.matrix(), sparse.identity(2, format="csr")
-            V = sparse.diags(self.volume[self._mine])
-            gather = sparse.kron(sparse.diags(scale) @ N @ V, two)
-            scatter = sparse.kron(V @ N.T @ sparse.diags(self.weight.x.array / share), two)
-            self._serial["to_source"] = (self._serial["source"] @ gather).tocsr()
-            self._serial["to_grains"] = (scatter @ self._serial["force"]).tocsr()
+        if self._serial is not None:   # the grains' basis rows, scaled each way
+            cols, N = self._grains.rows()
+            V = self.volume[self._mine, None]
+            self._serial["basis"] = (cols, scale[cols] * N * V, V * N * (self.weight.x.array / share)[cols])
+            self._serial.pop("to_source", None)    # (made when interval_forces asks)
         self._displacement_scale, self._share = scale, share
 
     def interval_forces(self, elapsed: float) -> np.ndarray:
@@ -366,6 +367,13 @@ class ChamberFlow(DarcyFlow):
         out = np.zeros((self.sim.p.n, 3))
         ops = self._serial
         if ops is not None:
+            if "to_source" not in ops:   # (grain rows i of (m, 2) arrays ravel to 2 i + c)
+                N, two = self._grains.matrix(), sparse.identity(2, format="csr")
+                V = sparse.diags(self.volume[mine])
+                scatter = V @ N.T @ sparse.diags(self.weight.x.array / self._share)
+                ops["to_source"] = (ops["source"] @ sparse.kron(
+                    sparse.diags(self._displacement_scale) @ N @ V, two)).tocsr()
+                ops["to_grains"] = (sparse.kron(scatter, two) @ ops["force"]).tocsr()
             b.x.array[:] = ops["to_source"] @ moved.ravel() - drain * self._flow_of_last
             for bc in self.bcs:                           # (p = 0 at the drained dofs)
                 bc.set(b.x.array)
@@ -391,6 +399,38 @@ class ChamberFlow(DarcyFlow):
         if self.domain.comm.size > 1:     # each grain on one rank: an exact sum
             self.domain.comm.Allreduce(MPI.IN_PLACE, out, op=MPI.SUM)
         return out
+
+    def interval_response(self) -> LinearResponse:
+        """(one rank) :meth:`interval_forces` of the last fluid step as a
+        `dem.response.LinearResponse` (:attr:`response`, updated in place): applied at the
+        k-th DEM step after the fluid step it adds ``interval_forces(k dt)`` (to round-off:
+        the step's matrix refactored by `dem.ldl.LDL`, its pattern analysed once, stands in
+        for PETSc's factors), inside the DEM's step loop, the fused one too (a numba pass of
+        two sparse products, the basis rows and two substitutions; through a Python hook
+        each DEM step cost more than the step itself)."""
+        ops = self._serial
+        if ops is None:
+            raise RuntimeError("interval_response: one rank only (interval_forces is collective)")
+        A = _scipy(self._problem.A)
+        if "kept_source" not in ops:   # (p = 0 at the drained dofs: their rows of A are I)
+            keep = np.ones(A.shape[0])
+            for bc in self.bcs:
+                keep[bc.dof_indices()[0]] = 0.0
+            ops["keep"], ops["kept_source"] = keep, (sparse.diags(keep) @ ops["source"]).tocsr()
+        drift = ops["keep"] * self._flow_of_last * (self.sim.dt / self._step_dt)
+        rows, x_ref = self._mine, self._x_last[self._mine, :2]
+        # (the mesh's operators and the grains' basis rows: fewer entries than their products)
+        ldl = ops.get("ldl")   # (M + dt K is symmetric positive definite, its pattern the mesh's)
+        if ldl is None or not ldl.same_pattern(A):
+            ops["ldl"] = ldl = LDL(A)
+        else:
+            ldl.factor(A)
+        args = (rows, x_ref, ops["kept_source"], drift, ldl, ops["force"], ops["basis"])
+        if self.response is None:
+            self.response = LinearResponse(*args)
+        else:
+            self.response.update(*args)
+        return self.response
 
     def _seepage_per_volume(self) -> fem.Function:
         """The grains' share of each dof's seepage force per grain volume, weighted by w: in
@@ -512,6 +552,7 @@ class SaturatedPenetration(CoupledPenetration):
         t0 = time.perf_counter()
         self.flow = ChamberFlow(self, fluid)
         self.fluid_time = 0.0
+        self._interval_force = None   # (free rows, force) of the hook's last interval step
         self._saturate()
         self.log(f"saturated in {time.perf_counter() - t0:.1f} s: k = {fluid.permeability:.3g} m^2, "
                  f"c_v = {self.consolidation_coefficient():.3g} m^2/s, V = v d / c_v = "
@@ -555,26 +596,70 @@ class SaturatedPenetration(CoupledPenetration):
         self.flow.step(self.fluid.every * self.sim.dt)
         self.fluid_time += time.perf_counter() - t0
 
-    def _before_sub_cycle(self, hook):
+    def _before_sub_cycle(self, hook) -> dict:
         """A fluid step now (the grains and the continuum as they are), read at the FE step's
-        start; the returned hook of the sub-cycle's DEM steps solves the fluid again every
-        ``fluid.every`` DEM steps and applies the last fluid step's implicit drag (every =
-        1) or the interval's forces (every > 1) in the others, then ``hook``."""
+        start, and the sub-cycle's `dem.Simulation.step` arguments, ``hook`` last in every
+        DEM step. ``fluid.every`` = 1: a hook solves the fluid again after every DEM step's
+        force pass and applies its implicit drag. every > 1: a fluid step in the pause after
+        every ``every``-th DEM step (between steps), the DEM steps between taking the
+        interval's forces: on one rank without an exchange hook as the DEM's linear
+        response (`ChamberFlow.interval_response`, in the fused step loop), else from a
+        hook (`ChamberFlow.interval_forces`, collective). The last interval force is taken
+        out of the grains' forces before a fluid step (which sets the fluid's own)."""
+        self._withdraw()
         self._fluid_step()
         self._readings = self.flow.readings()
-        count = 0
+        sim, every = self.sim, self.fluid.every
+        if every == 1:
+            count = 0
 
-        def fluid_hook():
-            nonlocal count
-            count += 1
-            if count % self.fluid.every == 0 and count < self.prm.substeps:
+            def fluid_hook():
+                nonlocal count
+                count += 1
+                if count < self.prm.substeps:
+                    self._fluid_step()
+                if self.flow.drag is not None:
+                    self.flow.drag.apply(sim)
+                return bool(hook()) if hook is not None else False
+            return {"hook": fluid_hook}
+        if hook is None and self.comm.size == 1:
+            response = self._response()
+
+            def pause():
+                self._withdraw()
                 self._fluid_step()
-            elif self.fluid.every > 1:
-                self._interval_step(((count - 1) % self.fluid.every + 1) * self.sim.dt)
-            if self.flow.drag is not None:
-                self.flow.drag.apply(self.sim)
+                self._response()
+            return {"hook": None, "response": response, "pause_every": every, "pause": pause}
+        since = 0
+
+        def interval_hook():
+            nonlocal since
+            since += 1
+            self._interval_step(since * sim.dt)
             return bool(hook()) if hook is not None else False
-        return fluid_hook
+
+        def pause():
+            nonlocal since
+            since = 0
+            self._withdraw()
+            self._fluid_step()
+        return {"hook": interval_hook, "pause_every": every, "pause": pause}
+
+    def _withdraw(self) -> None:
+        """Take the last DEM step's interval force out of the grains' forces (between steps,
+        before a fluid step sets the fluid's own: else the next half-kick counts it twice)."""
+        if self.flow.response is not None:
+            self.flow.response.withdraw(self.sim)
+        if self._interval_force is not None:
+            free, f = self._interval_force
+            self.sim.p.force[free] -= f[free]
+            self._interval_force = None
+
+    def _response(self) -> LinearResponse:
+        t0 = time.perf_counter()
+        response = self.flow.interval_response()
+        self.fluid_time += time.perf_counter() - t0
+        return response
 
     def _interval_step(self, elapsed: float) -> None:
         """The fluid's force change ``elapsed`` [s] after its last step, added to the free
@@ -585,6 +670,7 @@ class SaturatedPenetration(CoupledPenetration):
         free = sim.p.kind == FREE
         sim.p.force[free] += f[free]
         sim.forced[free] = 1
+        self._interval_force = (free, f)
         self.fluid_time += time.perf_counter() - t0
 
     def advance(self) -> dict:
