@@ -16,11 +16,12 @@ This demo shows how to:
   undrained permeability at the fast rate, and the dry run beside,
 - write ``results.json`` and ``cptu_coupled.png`` (u2 and q_c against depth) to ``--out``.
 
-Run: ``NUMBA_NUM_THREADS=1 python demos/2d/cptu_coupled.py`` (one core: ~6 min wall;
-CPU ~9 s set-up and 18-37 s push a saturated run with the scene's fluid step every 25 DEM
-steps, the DEM steps between taking the interval's forces
-(`ChamberFlow.interval_forces`), 6 s the dry push); ``--every 1``: the fluid every DEM
-step, ~110 s a push (at V ~ 1 in 3 packings its q_c 10 % higher on average, u2 alike).
+Run: ``NUMBA_NUM_THREADS=1 python demos/2d/cptu_coupled.py`` (one core: ~3 min wall;
+CPU ~9 s set-up and 13-25 s push a saturated run with the scene's fluid step every 25 DEM
+steps, the DEM steps between taking the interval's forces in the DEM's own step loop
+(`ChamberFlow.interval_response`), 5 s the dry push); ``--every 1``: the fluid every DEM
+step, ~100-110 s a push (at V ~ 1 in 3 packings q_c 1.4 % above every 25's on average,
+u2 alike: benchmarks/cptu_cost.py).
 ``GRANFE_SHORT=1``: a small window and cone
 (the tests' scene), dry, drained and undrained only, ~10 s. The continuum is drained as
 far as its mechanics go (the dry micropolar model; its pressure is the fixed-stress

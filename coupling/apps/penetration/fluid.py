@@ -36,8 +36,9 @@ class FluidParameters:
             between takes the last fluid step's response to the grains' displacement since
             it (`coupling.apps.penetration.saturated.ChamberFlow.interval_forces`); held
             forces alone blew up at 5 in the loose window (k = 1e-11, beta_f = 1e-6).
-            scenes/cptu_2d.toml takes 25: at V ~ 1 (3 packings) q_c 10 % below every DEM
-            step's on average, u2 alike, at a sixth of the CPU.
+            scenes/cptu_2d.toml takes 25: at V ~ 1 (3 packings, benchmarks/cptu_cost.py)
+            q_c 1.4 % below every DEM step's on average (-11 to +5 % a packing), u2 alike,
+            at 2.9x the dry push's CPU against 22x; 50: q_c 11 % below at 2.3x.
     """
 
     permeability: float = 1e-12

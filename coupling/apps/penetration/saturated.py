@@ -22,7 +22,11 @@ implicit drag of `dem.drag.GroupDrag` holds the lag off; with one every few DEM 
 (cheaper) every DEM step between adds the last step's response to the grains'
 displacement since it and the drainage of its pressure over the time since
 (:meth:`ChamberFlow.interval_forces`: the fluid's stiffness and Darcy resistance, one
-back-substitution with the step's factors). Outside, the continuum is *drained* as far as
+back-substitution with the step's factors). On one rank the DEM applies that response
+itself in its fused step loop (`dem.response.LinearResponse` from
+:meth:`ChamberFlow.interval_response`) and the fluid steps run between DEM steps
+(`dem.Simulation.step`'s ``pause``); on several, or under an exchange's hook, a hook
+applies it (the Python step loop). Outside, the continuum is *drained* as far as
 its mechanics go (it is the dry micropolar model: it does not feel p), and its volumetric
 strain rate ``div v_FE`` is the source with the skeleton's compressibility ``1 / K`` (K its
 plane-strain bulk modulus) as storage: the pressure there is the fixed-stress estimate of a
