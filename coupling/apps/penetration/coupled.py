@@ -873,18 +873,28 @@ class CoupledPenetration:
     def _geostatic_loads(self):
         """3D: gravity on the continuum and, on its side, the traction of the geostatic stress
         ``sigma_geo = -rho g (s - z) diag(K0, K0, 1)`` (uniaxial strain, K0 = lam / (lam + 2 mu
-        + kappa)): the confining pressure K0 rho g (s - z) on a vertical side."""
-        import ufl
+        + kappa)): the confining pressure K0 rho g (s - z) on a vertical side.
 
-        m, g = self.material_fe, self.prm.gravity
-        k0 = self._geostatic_k0()
-        self.problem.body_force((0.0, 0.0, -m.rho * g))
-        xs = ufl.SpatialCoordinate(self.problem.domain)
-        n = ufl.FacetNormal(self.problem.domain)
+        The packing's numbers (the unit weight rho g, the surface's height s, K0) enter the
+        forms as ``fem.Constant`` (kept in ``self.geostatic``): a float in a form is part of
+        its FFCx signature, so each packing compiled the residual and its tangents anew; with
+        constants the next packing reuses them (tests/coupling/test_form_reuse.py)."""
+        import ufl
+        from dolfinx import default_scalar_type, fem
+
+        m, g, domain = self.material_fe, self.prm.gravity, self.problem.domain
+
+        def constant(value):
+            return fem.Constant(domain, default_scalar_type(value))
+
+        geo = self.geostatic = SimpleNamespace(unit_weight=constant(m.rho * g), surface=constant(self.surface),
+                                               k0=constant(self._geostatic_k0()))
+        self.problem.body_force((0.0, 0.0, -m.rho * g))   # (a fem.Constant: ContinuumProblem.body_load)
+        xs, n = ufl.SpatialCoordinate(domain), ufl.FacetNormal(domain)
         # sigma_geo . n, not -sigma_h n: the side's facets are not exactly vertical
-        sigma_geo = -m.rho * g * (self.surface - xs[2]) * ufl.diag(ufl.as_vector([k0, k0, 1.0]))
+        sigma_geo = -geo.unit_weight * (geo.surface - xs[2]) * ufl.diag(ufl.as_vector([geo.k0, geo.k0, 1.0]))
         self.problem.traction("side", sigma_geo * n)
-        self.k0 = k0
+        self.k0 = float(geo.k0.value)
 
     def _geostatic_k0(self) -> float:
         """K0 = lam / (lam + 2 mu + kappa): sigma_h / sigma_v of the continuum under uniaxial strain."""
@@ -1080,8 +1090,9 @@ class CoupledPenetration:
         ghosts = self._ghosts(g_prev, g_next)
         for servo in self.servos:   # the top plate's speed, held over the sub-cycle
             servo(sim)
+        hook = self._before_sub_cycle(hook)
         self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
-                               prm.velocity, VERTICAL[prm.dim], ghosts, **self._before_sub_cycle(hook))
+                               prm.velocity, VERTICAL[prm.dim], ghosts, hook=hook)
         t1 = clock()
         t_dem = t1 - t_dem
         extra = exchange()
@@ -1110,13 +1121,11 @@ class CoupledPenetration:
         return GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0],
                            self.dt_fe, theta_start=g_prev[1], theta_end=g_next[1])
 
-    def _before_sub_cycle(self, hook) -> dict:
-        """Called once before each FE step's DEM sub-cycle; returns the keyword arguments of
-        its `dem.Simulation.step` call: the hook of its DEM steps (``hook``: the exchange's
-        own), and what a subclass adds. A saturated run solves its fluid here and adds the
-        fluid's drag or response and its steps in between (:mod:`coupling.apps.penetration.
-        saturated`)."""
-        return {"hook": hook}
+    def _before_sub_cycle(self, hook):
+        """Called once before each FE step's DEM sub-cycle; returns the hook of its DEM steps
+        (``hook``: the exchange's own). A saturated run solves its fluid here and adds the
+        fluid's drag (:mod:`coupling.apps.penetration.saturated`)."""
+        return hook
 
     def _refined_depth(self) -> float:
         """Depth [m] down to which the chamber's mesh is refined to the window's element
