@@ -1090,9 +1090,8 @@ class CoupledPenetration:
         ghosts = self._ghosts(g_prev, g_next)
         for servo in self.servos:   # the top plate's speed, held over the sub-cycle
             servo(sim)
-        hook = self._before_sub_cycle(hook)
         self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
-                               prm.velocity, VERTICAL[prm.dim], ghosts, hook=hook)
+                               prm.velocity, VERTICAL[prm.dim], ghosts, **self._before_sub_cycle(hook))
         t1 = clock()
         t_dem = t1 - t_dem
         extra = exchange()
@@ -1121,11 +1120,13 @@ class CoupledPenetration:
         return GhostMotion(self.ghost_local, self.x_ref[self.ghost_local], g_prev[0], g_next[0],
                            self.dt_fe, theta_start=g_prev[1], theta_end=g_next[1])
 
-    def _before_sub_cycle(self, hook):
-        """Called once before each FE step's DEM sub-cycle; returns the hook of its DEM steps
-        (``hook``: the exchange's own). A saturated run solves its fluid here and adds the
-        fluid's drag (:mod:`coupling.apps.penetration.saturated`)."""
-        return hook
+    def _before_sub_cycle(self, hook) -> dict:
+        """Called once before each FE step's DEM sub-cycle; returns the keyword arguments of
+        its `dem.Simulation.step` call: the hook of its DEM steps (``hook``: the exchange's
+        own), and what a subclass adds. A saturated run solves its fluid here and adds the
+        fluid's drag or response and its steps in between (:mod:`coupling.apps.penetration.
+        saturated`)."""
+        return {"hook": hook}
 
     def _refined_depth(self) -> float:
         """Depth [m] down to which the chamber's mesh is refined to the window's element
