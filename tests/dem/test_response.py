@@ -171,3 +171,15 @@ def test_ldl_factors_a_fixed_pattern_and_drives_the_response():
         forces.append(resp.force.copy())
     np.testing.assert_allclose(forces[0], forces[1], rtol=0, atol=1e-12 * abs(forces[1]).max())
     assert abs(forces[1]).max() > 0
+
+
+def test_the_fused_loops_empty_response_has_the_responses_types():
+    """`Simulation.step` hands the fused loop `dem.integrate._NO_RESPONSE` when there is no
+    response: its types must be those of `LinearResponse.arrays` (through SuperLU's factors
+    and `LDL`'s alike), or numba compiles the loop a second time for a saturated run."""
+    from dem.integrate import _NO_RESPONSE
+    from dem.ldl import LDL
+    identity = sp.identity(4, format="csr")
+    for factors in (splu(identity.tocsc()), LDL(identity)):
+        arrays = LinearResponse([0, 1], np.zeros((2, 2)), identity, np.zeros(4), factors, identity).arrays()
+        assert [(a.dtype, a.ndim) for a in arrays] == [(a.dtype, a.ndim) for a in _NO_RESPONSE]
