@@ -139,7 +139,10 @@ class CouplingInterface(DistributedVectors):
             raise ValueError("no FE dofs are prescribed: the window is smaller than the "
                              "handshake depth or the mesh has no nodes inside it")
         dofs = np.unique(np.concatenate(bc_dofs)).astype(np.int32)
-        problem.bcs.append(fem.dirichletbc(self.g, dofs))
+        #: the prescribed dofs' condition in ``problem.bcs`` (a fresh interface of the same
+        #: problem takes this one's out first)
+        self.bc = fem.dirichletbc(self.g, dofs)
+        problem.bcs.append(self.bc)
         # a linear FE problem whose Dirichlet values alone change between solves: factorise
         # the Jacobian once and reuse it (not for a model with state: a plastic one's
         # Jacobian changes, and a lagged one makes Newton converge linearly)

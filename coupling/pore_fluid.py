@@ -80,7 +80,7 @@ from coupling.locate import affine_maps, cell_tree, locate_owned, owner_ranks, r
 from dem.drag import GroupDrag, group_means
 from dem.state import FREE
 from granfe.problem import Where, boundary_facets
-from granfe.solvers import check_ksp_converged
+from granfe.solvers import REDUNDANT, check_ksp_converged
 
 __all__ = ["DarcyFlow", "GrainSpace", "PoreFluidParameters", "kozeny_carman", "grain_volumes"]
 
@@ -181,8 +181,8 @@ class DarcyFlow:
         sim: the `dem.Simulation` (held whole on every rank); its ``gravity`` sets buoyancy.
         params: :class:`PoreFluidParameters`.
         facet_tags, tag_names: named boundaries (physical-group names -> tag values).
-        petsc_options: overrides of the direct linear solve (LU: PETSc's on one rank, MUMPS
-            on several).
+        petsc_options: overrides of the direct linear solve (LU: PETSc's on one rank,
+            sequential MUMPS on every rank of several, `granfe.solvers.REDUNDANT`).
         particles: the fluid sees the first ``particles`` rows of the DEM (None: all): the
             grains, when rigid bodies follow them (a penetrator's clump, which may stand
             outside the mesh); the rows after them have no volume to it and get no force.
@@ -259,10 +259,12 @@ class DarcyFlow:
         self._neumann: list = []
         self._problem = None
         # LU: PETSc's own on one rank (MUMPS's set-up per factorisation is most of a small
-        # mesh's solve), MUMPS across ranks
-        self._petsc = {"ksp_type": "preonly", "pc_type": "lu",
-                       "pc_factor_mat_solver_type": "petsc" if domain.comm.size == 1 else
-                       "mumps", **(petsc_options or {})}
+        # mesh's solve); across ranks sequential MUMPS on every rank (granfe.solvers.REDUNDANT:
+        # parallel MUMPS schedules dynamically, and its round-off, grown by the grains, made
+        # two runs on the same ranks, or a restart, part)
+        serial = {"pc_type": "lu", "pc_factor_mat_solver_type": "petsc"}
+        self._petsc = {"ksp_type": "preonly", **(serial if domain.comm.size == 1 else REDUNDANT),
+                       **(petsc_options or {})}
         self._mine = None   # global rows of the grains this rank evaluates
         # the mesh does not move: its pull-backs and its cells' search tree once
         self._maps, self._tree = affine_maps(domain), cell_tree(domain)

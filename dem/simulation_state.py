@@ -37,8 +37,10 @@ class SimulationState:
         parts of the last force pass the next drift books (``integrator.*``), time, step
         count, dt and gravity, the ledger's sums (``ledger.*``), the walls' state
         (``walls.*``), the neighbour list with its contact history and build positions
-        (``contacts.*``, `dem.neighbours.NeighbourList.state_dict`) and the periodic cell
-        (``cell.*``) if any. `load_state` restores it into a Simulation built the same way."""
+        (``contacts.*``, `dem.neighbours.NeighbourList.state_dict`), the constant external
+        forces of `set_external_force` (``external.rows`` / ``external.force``, empty if
+        none: they are in ``particles.force`` already) and the periodic cell (``cell.*``) if
+        any. `load_state` restores it into a Simulation built the same way."""
         d = {f"particles.{k}": v for k, v in self.p.state_dict().items()}
         d["particles.dim"] = int(self.p.dim)
         d.update(time=float(self.time), nsteps=int(self.nsteps), dt=float(self.dt),
@@ -55,6 +57,8 @@ class SimulationState:
                   "ledger.initial": float(self._e0), "ledger.initial_shadow": float(self._shadow0)})
         d.update({f"walls.{k}": v for k, v in self.walls.state_dict().items()})
         d.update({f"contacts.{k}": v for k, v in self.nl.state_dict().items()})
+        rows, force = self.external_force()
+        d.update({"external.rows": np.array(rows, np.int64), "external.force": np.array(force, float)})
         if self.cell is not None:
             d.update({f"cell.{k}": v for k, v in self.cell.state_dict().items()})
             d.update({"cell.bf": self._bf.copy(), "cell.bf_prev": self._bf_prev.copy(),
@@ -69,8 +73,9 @@ class SimulationState:
         of a missing entry, an unknown one, or one whose shape does not fit."""
         d = dict(d)
         want = set(self.state_dict())  # the keys of this configuration (cheap: copies)
-        # ledger.external: absent from states written before external forces existed
-        optional = {"cell.xh_x", "cell.xh_h", "ledger.external"}
+        # ledger.external, external.*: absent from states written before external forces
+        # existed or were kept (such a state leaves the external forces set now as they are)
+        optional = {"cell.xh_x", "cell.xh_h", "ledger.external", "external.rows", "external.force"}
         for k in sorted(want - optional):
             if k not in d:
                 raise ValueError(f"state has no {k!r} (a state_dict of another configuration?)")
@@ -116,6 +121,12 @@ class SimulationState:
         self._ghosts = self._ghost_index()
         self._lay = (None, None)  # the pair layout is rebuilt from the history restored
         self._good = None
+        if "external.rows" in d:   # (already in the forces restored: set beside them, not added)
+            rows = np.asarray(d["external.rows"], np.int64).ravel()
+            f = np.array(_fit("external.force", d["external.force"], (len(rows), 3)), float)
+            if len(rows) and (rows.min() < 0 or rows.max() >= p.n):
+                raise ValueError(f"state 'external.rows' must lie in [0, {p.n})")
+            self._ext = (rows, f, p.x[rows].copy()) if len(rows) else None
         if self._ext is not None:
             self._ext[2][:] = p.x[self._ext[0]]
         self._check()

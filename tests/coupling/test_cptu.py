@@ -68,11 +68,10 @@ def test_fluid_table_names_the_bad_key(bad, named):
         scene(bad)
 
 
-def test_fluid_needs_a_2d_loose_run_without_checkpoints():
+def test_fluid_needs_a_2d_loose_run():
     with pytest.raises(SceneError, match="fluid.enabled = true needs coupling.interface = 'loose'"):
         scene({}, coupling={"interface": "iqn-ils"})
-    with pytest.raises(SceneError, match="output.checkpoint_every = 0"):
-        scene({}, output={"checkpoint_every": 5})
+    assert scene({}, output={"checkpoint_every": 5}).output.checkpoint_every == 5
     with pytest.raises(SceneError, match="unknown key fluid.permeabilty"):
         scene({"permeabilty": 1e-11})
     assert scene({}).fluid_parameters().permeability == FLUID["permeability"]
@@ -373,3 +372,36 @@ def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch):
     fused, hooked = push(False), push(True)
     assert np.abs(fused).max() > 0
     np.testing.assert_allclose(fused, hooked, rtol=1e-6)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("every", [1, 10])
+def test_a_restart_repeats_the_saturated_run(tmp_path_factory, every):
+    """A saturated push restarted from a checkpoint repeats the straight run to the bit (q_c,
+    u2, the pressure and the grains), with a fluid step every DEM step (the implicit drag)
+    and every 10 (the DEM's linear response on one rank, the interval hook on two): the
+    checkpoint holds the pressure, the fluid's reference positions, where its points were
+    located, the DEM's external forces and the interval force in the grains' forces. A dry
+    run's checkpoint is refused by name."""
+    comm = MPI.COMM_WORLD
+    where = comm.bcast(str(tmp_path_factory.mktemp("cptu_ck")) if comm.rank == 0 else None, root=0)
+    s = scene({"every": every})
+    prm, fluid = s.parameters(), s.fluid_parameters()
+    cpt = SaturatedPenetration(prm, fluid, comm, log=quiet)
+    cpt.run(steps=2)
+    cpt.save_checkpoint(f"{where}/ck")
+    straight = [cpt.advance() for _ in range(3)]
+    again = SaturatedPenetration(prm, fluid, comm, log=quiet, checkpoint=f"{where}/ck")
+    assert len(again.history) == 2
+    restarted = [again.advance() for _ in range(3)]
+    for a, b in zip(straight, restarted, strict=True):
+        for key in ("q_c", "u2", "u_max", "q_t"):
+            assert a[key] == b[key], (key, a[key], b[key])
+    assert np.array_equal(cpt.flow.p.x.array, again.flow.p.x.array)
+    assert np.array_equal(cpt.sim.p.x, again.sim.p.x)
+    assert np.array_equal(cpt.sim.p.force, again.sim.p.force)
+    assert abs(straight[-1]["u_max"]) > 0
+    dry = CoupledPenetration(prm, comm, log=quiet)
+    dry.save_checkpoint(f"{where}/dry")
+    with pytest.raises(FileNotFoundError, match="no pore fluid"):
+        SaturatedPenetration(prm, fluid, comm, log=quiet, checkpoint=f"{where}/dry")

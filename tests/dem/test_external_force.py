@@ -48,6 +48,38 @@ def test_surcharge_on_a_column_reaches_the_floor_and_the_ledger_closes():
     assert again.energy()["work_external"] == en["work_external"]
 
 
+def test_the_state_carries_the_external_forces_across_a_restart():
+    """`state_dict` holds the external forces set now (already in the force rows: a restart
+    sets them beside the forces, not onto them); a fresh Simulation restored from it steps on
+    to the bit, and a state without them (written before they were kept) leaves the ones set
+    before `load_state`."""
+    x = np.array([[0.0, 0.0, 0.0], [2.2e-3, 0.0, 0.0], [4.4e-3, 0.0, 0.0]])
+
+    def build():
+        return Simulation(Particles.spheres(x, np.full(3, 1.1e-3), 2650.0, dim=2), MAT, dt=1e-5)
+
+    sim = build()
+    sim.set_external_force([0, 2], [(1e-3, 0.0, 0.0), (-2e-3, 0.0, 0.0)])
+    sim.step(300)
+    state = sim.state_dict()
+    sim.step(300)
+    again = build()
+    again.load_state(state)
+    rows, f = again.external_force()
+    assert rows.tolist() == [0, 2] and f[1, 0] == -2e-3
+    again.step(300)
+    assert np.array_equal(again.p.x, sim.p.x) and np.array_equal(again.p.v, sim.p.v)
+    assert again.energy()["work_external"] == sim.energy()["work_external"]
+    old = {k: v for k, v in state.items() if not k.startswith("external.")}
+    other = build()
+    other.set_external_force([1], (0.0, 1e-3, 0.0))
+    other.load_state(old)
+    assert other.external_force()[0].tolist() == [1]
+    none = build()
+    none.load_state(build().state_dict())
+    assert len(none.external_force()[0]) == 0
+
+
 def test_external_force_rejects_bad_rows_and_values():
     x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     p = Particles.spheres(x, np.full(2, 1e-3), 2650.0, dim=2, kind=np.array([0, GHOST], np.int8))

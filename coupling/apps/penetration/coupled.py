@@ -507,10 +507,7 @@ class CoupledPenetration:
                                                   lambda x: window.signed_distance(x[:, :dim]) < 0))
             self.interface = GhostReactions(self.problem, self.x_ref, self.kinds)
         else:
-            # window nodes with few grains in their support (the free surface) stay FE dofs: an
-            # ill-conditioned projection there would amplify the grains' noise
-            self.interface = CouplingInterface(self.problem, self.x_ref, self.kinds, self.regions,
-                                               min_support=0.3)
+            self.interface = self._displacement_interface()
         self.free_local = np.flatnonzero(self.kinds == 0)
         self.ghost_local = np.flatnonzero(self.kinds == 1)
         self._g_ref, self._q_ref = None, None
@@ -1182,6 +1179,7 @@ class CoupledPenetration:
                      a=st.a.x.array, g=self.interface.g.x.array, last_good=self.problem.last_good,
                      **{f"qp.{k}": v for k, v in self.problem.state.state_dict().items()},
                      **{f"iqn.{k}": v for k, v in self.accelerator.state_dict().items()})
+            own += self._checkpoint_files(tmp)
             if comm.rank != 0:
                 return [name] + own
             forces = {} if self.f0 is None else {"f0": self.f0, "f_applied": self.f_applied}
@@ -1197,6 +1195,17 @@ class CoupledPenetration:
             return [name, "grains.npz", "state.json"] + own
 
         return write_checkpoint(directory, step, comm, files, meta=meta)
+
+    def _displacement_interface(self) -> CouplingInterface:
+        """The loose and iterated exchanges' interface, its basis at the grains' reference
+        positions ``x_ref``. Window nodes with few grains in their support (the free surface)
+        stay FE dofs: an ill-conditioned projection there would amplify the grains' noise."""
+        return CouplingInterface(self.problem, self.x_ref, self.kinds, self.regions, min_support=0.3)
+
+    def _checkpoint_files(self, tmp: Path) -> list[str]:
+        """A subclass's own files of a checkpoint, written into ``tmp`` on every rank (their
+        names; :meth:`save_checkpoint` calls it collectively). None here."""
+        return []
 
     def _read_checkpoint(self, directory: Path) -> dict:
         """The checkpoint in ``directory``, validated against its manifest (every file's

@@ -331,7 +331,6 @@ class MovingWindowPenetration(CoupledPenetration):
                              "new grains are not consolidated under a surcharge")
         self.moving = moving   # before the parent's set-up: it sizes the mesh (_refined_depth)
         super().__init__(prm, comm, log=log)
-        self._interface_bc = self.problem.bcs[-1]   # appended by the parent's interface
         # where the initial window's lattice starts (coupling.apps.penetration.coupled: window + band)
         self._lattice_origin = np.array(self.regions.window.lo) - self.regions.ghost_width
         self.axis = self.sim.p.dim - 1
@@ -813,9 +812,8 @@ class MovingWindowPenetration(CoupledPenetration):
     def _rebuild_coupling(self):
         """Interface and stepper for the current grains; the FE state carries on."""
         problem, old = self.problem, self.stepper
-        problem.bcs[:] = [bc for bc in problem.bcs if bc is not self._interface_bc]
+        problem.bcs[:] = [bc for bc in problem.bcs if bc is not self.interface.bc]
         iface = CouplingInterface(problem, self.x_ref, self.kinds, self.regions, min_support=0.3)
-        self._interface_bc = problem.bcs[-1]
         w = problem.w.x.array
         iface.set_prescribed(np.concatenate([w[f.prescribed] for f in iface.fields]))
         self._stepper_count += 1

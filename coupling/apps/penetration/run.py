@@ -41,16 +41,16 @@ def run_penetration(prm: PenetrationParameters, out: str | Path, comm, *, frames
     which a signal arrived, write a checkpoint and raise
     :class:`coupling.interrupts.Interrupted`. ``fluid``
     (:class:`~coupling.apps.penetration.fluid.FluidParameters`): saturated, with a pore fluid
-    (:mod:`coupling.apps.penetration.saturated`; no checkpoints, no moving window).
+    (:mod:`coupling.apps.penetration.saturated`; checkpoints with the fluid's state, no
+    moving window).
     """
     out = Path(out)
     checkpoint = out / "checkpoint" if checkpoint is None else Path(checkpoint)
     if restart and not (checkpoint / "state.json").exists():
         raise FileNotFoundError(f"no complete checkpoint in {checkpoint} to restart from "
                                 "(output.checkpoint_every = 0, or the run stopped before the first)")
-    if fluid is not None and (restart or checkpoint_every or moving is not None):
-        raise ValueError("a saturated penetration writes no checkpoints and keeps its window "
-                         "so far: checkpoint_every must be 0, restart False and moving None")
+    if fluid is not None and moving is not None:
+        raise ValueError("a saturated penetration keeps its window so far: moving must be None")
     if moving is not None and (restart or checkpoint_every):
         raise ValueError("a window that follows the penetrator writes no checkpoints yet: "
                          "checkpoint_every must be 0 and restart False")
@@ -104,7 +104,7 @@ def _set_up(prm, comm, log, moving, checkpoint, out, fluid=None):
     try:
         if fluid is not None:
             from coupling.apps.penetration.saturated import SaturatedPenetration
-            return SaturatedPenetration(prm, fluid, comm, log=log)
+            return SaturatedPenetration(prm, fluid, comm, log=log, checkpoint=checkpoint)
         if moving is None:
             return CoupledPenetration(prm, comm, log=log, checkpoint=checkpoint)
         from coupling.apps.penetration.moving_window import MovingWindowPenetration

@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
@@ -88,6 +89,7 @@ from coupling.apps.penetration.coupled import CoupledPenetration
 from coupling.apps.penetration.fluid import FluidParameters
 from coupling.apps.penetration.parameters import VERTICAL
 from coupling.apps.penetration.penetrators import tip_height
+from coupling.interface import IQNILS, IQNOptions
 from coupling.locate import locate_owned, owner_ranks, relocate
 from coupling.pore_fluid import DarcyFlow, GrainSpace, PoreFluidParameters
 from dem.drag import group_means
@@ -478,6 +480,55 @@ class ChamberFlow(DarcyFlow):
         owned = self.Vn.dofmap.index_map.size_local
         self.cone_force[:2] = self.domain.comm.allreduce(f[:owned].sum(axis=0))
 
+    # ---- checkpoints ----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """This rank's fluid state between FE steps, as arrays (``np.savez``-ready): the
+        pressure (local dofs), time, the grains' positions at the last fluid step, the
+        porosity scales measured at the set-up (``n0``, ``packed``: from the grains as they
+        settled), the other external forces, and where the grains, the penetrator's points
+        and the probes were located (their cells: located again from them, a point on a
+        cell's edge stays in the same cell, so a restart repeats the run's bits)."""
+        d = {"p": self.p.x.array.copy(), "t": float(self.t), "n0": self.n0, "packed": self.packed}
+        if self._x_last is not None:
+            d["x_last"] = self._x_last.copy()
+        if self.extra_force is not None:
+            d["extra_force"] = self.extra_force.copy()
+        for name, (mine, cells) in self._located().items():
+            if mine is not None:
+                d[f"{name}.mine"], d[f"{name}.cells"] = np.asarray(mine, np.int64), cells.copy()
+        return d
+
+    def _located(self) -> dict:
+        return {"grains": (self._mine, self._grains.cells), "cone": (self._cone.mine, self._cone.space.cells),
+                "probes": (self._probes.mine, self._probes.space.cells)}
+
+    def load_state(self, d) -> None:
+        """Restore a :meth:`state_dict` of the same scene and rank count (ValueError naming
+        a field that does not fit)."""
+        if d["p"].shape != self.p.x.array.shape:
+            raise ValueError(f"checkpoint field fluid p has {d['p'].shape} values, the mesh "
+                             f"{self.p.x.array.shape}: different parameters or mesh")
+        self.p.x.array[:] = d["p"]
+        self.t, self.n0, self.packed = float(d["t"]), float(d["n0"]), float(d["packed"])
+        self._x_last = np.array(d["x_last"]) if "x_last" in d else None
+        self.extra_force = np.array(d["extra_force"]) if "extra_force" in d else None
+        if self._x_last is not None and self._x_last.shape != (self.particles, 3):
+            raise ValueError(f"checkpoint field fluid x_last has {self._x_last.shape} rows, the "
+                             f"run {self.particles} grains")
+        num_cells = self.domain.topology.index_map(self.domain.topology.dim).size_local
+        for name, tracker in (("grains", self), ("cone", self._cone), ("probes", self._probes)):
+            if f"{name}.mine" not in d:
+                continue
+            cells = np.asarray(d[f"{name}.cells"], np.int32)
+            if len(cells) != len(d[f"{name}.mine"]) or (len(cells) and cells.max() >= num_cells):
+                raise ValueError(f"checkpoint field fluid {name}.cells does not fit this mesh")
+            space = self._grains if tracker is self else tracker.space
+            if tracker is self:
+                self._mine = np.asarray(d["grains.mine"], np.int64)
+            else:
+                tracker.mine = np.asarray(d[f"{name}.mine"], np.int64)
+            space.cells = cells
+
     # ---- readings -------------------------------------------------------------------------
     def readings(self) -> dict:
         """u1, u2 [Pa] (excess pore pressures on the face and at the shoulder, a grain radius
@@ -541,24 +592,29 @@ class SaturatedPenetration(CoupledPenetration):
     increment from the saturated state), then each FE step solves the fluid before its DEM
     sub-cycle and every ``fluid.every`` DEM steps in it; the DEM steps between take the
     implicit drag (every = 1) or the interval's forces (every > 1). The history records add
-    u1, u2, u_max, q_u and q_t = q_c + q_u (:meth:`ChamberFlow.readings`). Loose exchange,
-    no checkpoints (the fluid's state is not in them)."""
+    u1, u2, u_max, q_u and q_t = q_c + q_u (:meth:`ChamberFlow.readings`). Loose exchange;
+    checkpoints hold the fluid's state (:meth:`ChamberFlow.state_dict`) beside the dry run's,
+    and a restart from one (``checkpoint``) repeats the run's bits."""
 
-    def __init__(self, prm, fluid: FluidParameters, comm, log=print):
+    def __init__(self, prm, fluid: FluidParameters, comm, log=print, checkpoint=None):
         if prm.substeps % fluid.every:
             raise ValueError(f"fluid.every = {fluid.every} DEM steps must divide the FE step's "
                              f"substeps ({prm.substeps})")
         if prm.interface != "loose":
             raise ValueError(f"interface = {prm.interface!r}: a saturated penetration exchanges "
                              "loosely so far (interface = 'loose')")
-        super().__init__(prm, comm, log=log)
+        super().__init__(prm, comm, log=log, checkpoint=checkpoint)
         self.fluid = fluid
         t0 = time.perf_counter()
         self.flow = ChamberFlow(self, fluid)
         self.fluid_time = 0.0
         self._interval_force = None   # (free rows, force) of the hook's last interval step
-        self._saturate()
-        self.log(f"saturated in {time.perf_counter() - t0:.1f} s: k = {fluid.permeability:.3g} m^2, "
+        if checkpoint is None:
+            self._saturate()
+        else:
+            self._restore_fluid(Path(checkpoint))
+        what = "saturated" if checkpoint is None else "fluid restored"
+        self.log(f"{what} in {time.perf_counter() - t0:.1f} s: k = {fluid.permeability:.3g} m^2, "
                  f"c_v = {self.consolidation_coefficient():.3g} m^2/s, V = v d / c_v = "
                  f"{self.normalised_velocity():.3g}, window porosity {self.flow.n0:.3f}")
 
@@ -593,7 +649,60 @@ class SaturatedPenetration(CoupledPenetration):
         self.flow.cone_speed = self.prm.velocity
         self.flow.set_permeability(self.fluid.permeability)
         self.x_ref[:] = sim.p.x[:self.n_grains]
+        # the exchange's basis at the new reference, built as a restart builds it (its rows
+        # were the settled grains': the projection would read the saturated window at stale
+        # positions)
+        self.problem.bcs[:] = [bc for bc in self.problem.bcs if bc is not self.interface.bc]
+        self.interface = self._displacement_interface()
+        self.accelerator = IQNILS(self.interface, self.prm.relaxation, IQNOptions(reuse=1))
         self.flow.p.x.array[:] = 0.0   # the push starts from hydrostatic
+
+    # ---- checkpoints ----------------------------------------------------------------------
+    def _checkpoint_files(self, tmp: Path) -> list[str]:
+        """The fluid's part of a checkpoint (every rank: its pressure dofs and located points;
+        the rest is the same on every rank): :meth:`ChamberFlow.state_dict`, the fluid's
+        run time, and the last DEM step's interval force, which the grains' forces in the
+        checkpoint hold and the next fluid step takes out (:meth:`_withdraw`)."""
+        comm = self.comm
+        name = f"fluid_rank{comm.rank}_of{comm.size}.npz"
+        np.savez(tmp / name, **self.flow.state_dict(), fluid_time=self.fluid_time,
+                 withdraw=self._pending_interval_force())
+        return [name]
+
+    def _pending_interval_force(self) -> np.ndarray:
+        """(n, 3) [N] the interval force in the grains' force rows now (:meth:`_withdraw`'s)."""
+        out = np.zeros((self.sim.p.n, 3))
+        response = self.flow.response
+        if response is not None:
+            free = self.sim.p.kind[response.rows] == FREE
+            out[response.rows[free]] = response.force[free]
+        if self._interval_force is not None:
+            free, f = self._interval_force
+            out[free] = f[free]
+        return out
+
+    def _restore_fluid(self, directory: Path) -> None:
+        """The fluid's state from a checkpoint (the grains, the continuum and the history
+        were read by the base class): the push continues as the run it was written by."""
+        comm = self.comm
+        try:
+            d = dict(np.load(directory / f"fluid_rank{comm.rank}_of{comm.size}.npz"))
+        except OSError as err:
+            raise FileNotFoundError(f"the checkpoint in {directory} has no pore fluid of rank "
+                                    f"{comm.rank} ({err}): written by a dry run?") from None
+        missing = [k for k in ("p", "t", "n0", "packed", "withdraw", "fluid_time") if k not in d]
+        if missing:
+            raise FileNotFoundError(f"the checkpoint in {directory} is not a saturated "
+                                    f"penetration's (no fluid {', '.join(missing)})")
+        self.flow.load_state(d)
+        self.fluid_time = float(d["fluid_time"])
+        pending = d["withdraw"]
+        if pending.shape != (self.sim.p.n, 3):
+            raise ValueError(f"checkpoint field fluid withdraw has {pending.shape} rows, the "
+                             f"run {self.sim.p.n} particles")
+        # the last DEM step's interval force, as the next fluid step would take it out
+        rows = np.flatnonzero(pending.any(axis=1))
+        self.sim.p.force[rows] -= pending[rows]
 
     def _fluid_step(self) -> None:
         t0 = time.perf_counter()

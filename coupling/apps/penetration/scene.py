@@ -174,7 +174,7 @@ class Follow:
 @dataclass(frozen=True)
 class Fluid:
     """A Darcy pore fluid through the window's grains and the chamber (:mod:`coupling.apps.
-    penetration.saturated`; 2D, loose exchange, no checkpoints): off unless ``enabled``.
+    penetration.saturated`; 2D, loose exchange, checkpoints with the fluid's state): off unless ``enabled``.
     ``permeability`` [m^2] (constant), ``viscosity`` [Pa s], ``compressibility`` [1/Pa],
     ``density`` [kg/m^3], ``saturation_time`` [s] the window takes its buoyancy before the
     push, ``every``: DEM steps per fluid step (dividing ``coupling.substeps``)."""
@@ -252,13 +252,11 @@ class PenetrationScene(_Tables):
             raise SceneError(_named(str(err), parameter_keys(self, F))) from None
         needs = {"scene.dimension = 2": self.scene.dimension == 2,
                  "coupling.interface = 'loose'": self.coupling.interface == "loose",
-                 "follow.enabled = false": not self.follow.enabled,
-                 "output.checkpoint_every = 0": self.output.checkpoint_every == 0}
+                 "follow.enabled = false": not self.follow.enabled}
         for need, ok in needs.items():
             if not ok:
                 raise SceneError(f"fluid.enabled = true needs {need} (a saturated penetration is "
-                                 "2D, exchanges loosely, keeps its window and writes no "
-                                 "checkpoints so far)")
+                                 "2D, exchanges loosely and keeps its window so far)")
         if self.coupling.substeps % fluid.every:
             raise SceneError(f"fluid.every = {fluid.every} DEM steps must divide coupling.substeps "
                              f"= {self.coupling.substeps}")
