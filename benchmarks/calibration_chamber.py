@@ -552,6 +552,7 @@ def plot(results: dict) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     bcs = list(results["cases"])
     fig, axes = plt.subplots(1, len(bcs) + 1, figsize=(5.2 * (len(bcs) + 1) + 3.5, 4.8), squeeze=False)
@@ -617,6 +618,7 @@ def plot(results: dict) -> None:
         if r.get("liggghts"):
             ax.axvline(r["liggghts"]["total_s_mean"], color="C3", ls=":", label=f"{bc}: LIGGGHTS run time")
     ax.set_xscale("log")
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())   # (they overlapped)
     ax.set_xlabel("run time per packing [s] (set-up + push, wall; a coupled case on one core, the reference "
                   "on its ranks)")
     ax.set_ylabel("relative RMS error of q_c against the full-DEM average")
