@@ -91,20 +91,32 @@ class GeneralizedAlpha:
         # residual's mid-point fields
         self._points_at = w_mid if hasattr(model, "evaluate_points") else None
         dw = ufl.TestFunctions(V)
-        F = problem.weighted(model.inertia_work(problem.split(a_mid), dw)
-                             + model.internal_work(problem.split(w_mid), dw, state)) * problem.dx
         L = problem.external_work(dw)
-        F = F - L if L != 0 else F
+
+        def residual(internal_work):
+            F = problem.weighted(model.inertia_work(problem.split(a_mid), dw)
+                                 + internal_work(problem.split(w_mid), dw, state)) * problem.dx
+            return F - L if L != 0 else F
+
+        F = residual(model.internal_work)
         # a linear model's Jacobian is the same at every step: factorise it once; a plastic
         # one's changes with the state (lagged, Newton degrades to a linear rate of ~0.8)
         options = ({"snes_lag_jacobian": -2, "snes_lag_jacobian_persists": True}
                    if model.linear and not problem.state else {})
         self._F, self._prefix = F, prefix or problem.prefix + "dyn_"
         self._newton = None
-        self._quasi = _ElasticQuasiNewton.build(self, F, w_mid, a_mid) if tangent == "elastic" else None
+        # a pointwise model's quasi-Newton residual: the stress of its last evaluation, without
+        # the tangent its Newton residual expands about (the same residual to round-off)
+        F_quasi = residual(model.point_work) if hasattr(model, "point_work") else None
+        self._quasi = (_ElasticQuasiNewton.build(self, F if F_quasi is None else F_quasi, w_mid, a_mid,
+                                                 tangent=F_quasi is None)
+                       if tangent == "elastic" else None)
         self._snes = self._newton_problem(options) if self._quasi is None else self._quasi.nlp
         self._affine = _AffineStep.build(self, F, L)
         self.fallbacks = 0
+        #: the last solve: its SNES iterations, and with the quasi-Newton step whether it fell
+        #: back to Newton (then also the quasi-Newton's iterations and PETSc reason)
+        self.last_solve: dict = {}
         self._energies = EnergyForms(problem, self.v)
 
     def _newton_problem(self, options: dict | None = None, prefix: str | None = None):
@@ -164,13 +176,19 @@ class GeneralizedAlpha:
             if self._quasi is not None:
                 its = self._quasi.solve()
                 if its is not None:
+                    self.last_solve = {"iterations": its, "fallback": False}
                     return self.problem.checked(self._quasi.nlp, what)
                 self.fallbacks += 1
+                quasi = self._quasi.nlp.solver
+                self.last_solve = {"quasi_iterations": quasi.getIterationNumber(),
+                                   "quasi_reason": int(quasi.getConvergedReason()), "fallback": True}
                 if self._newton is None:
                     self._newton = self._newton_problem(prefix=self._prefix + "newton_")
                 self._newton.solve()
+                self.last_solve["iterations"] = self._newton.solver.getIterationNumber()
                 return self.problem.checked(self._newton, what)
             self._snes.solve()
+            self.last_solve = {"iterations": self._snes.solver.getIterationNumber()}
             return self.problem.checked(self._snes, what)
         except Exception:
             self.problem.w.x.array[:] = self.w_old.x.array
@@ -187,14 +205,15 @@ class GeneralizedAlpha:
         self.t += dt
         # the committed state is the return of the end fields from the last committed state
         # (a UFL model's commit evaluates its state_update at w; a pointwise one's return
-        # last ran at the mid-point fields)
-        self._evaluate_points()
+        # last ran at the mid-point fields); its tangent is not needed there: a Newton
+        # residual evaluates it again
+        self._evaluate_points(tangent=False)
         self.problem.state.commit()
 
-    def _evaluate_points(self) -> None:
+    def _evaluate_points(self, tangent: bool = True) -> None:
         """A model returning at the quadrature points: its return at ``w`` (collective)."""
         if self._points_at is not None:
-            self.problem.model.evaluate_points(self.problem)
+            self.problem.model.evaluate_points(self.problem, tangent=tangent)
 
     def step(self) -> int:
         """Advance one step; return SNES iterations (raises with the PETSc reason on failure)."""
@@ -249,9 +268,11 @@ class _ElasticQuasiNewton:
         self.problem, self.nlp = problem, nlp
 
     @classmethod
-    def build(cls, stepper: GeneralizedAlpha, F, w_mid, a_mid):
+    def build(cls, stepper: GeneralizedAlpha, F, w_mid, a_mid, tangent: bool = True):
         """The quasi-Newton step, or None when the model has no state or no elastic tangent
-        (``elastic_work``) or the linear solver is iterative (it would not be factorised)."""
+        (``elastic_work``) or the linear solver is iterative (it would not be factorised).
+        ``tangent``: whether the residual ``F`` reads a pointwise model's tangent (False: its
+        points are evaluated without it)."""
         problem = stepper.problem
         model, V = problem.model, problem.V
         if not problem.state or not hasattr(model, "elastic_work") or problem.solver_kind == "iterative":
@@ -268,7 +289,7 @@ class _ElasticQuasiNewton:
         fixed_jacobian(nlp, problem.bcs,
                        lambda: (_values(constants), tuple(id(bc) for bc in problem.bcs)),
                        before_residual=None if points_at is None else
-                       lambda: model.evaluate_points(problem, points_at))
+                       lambda: model.evaluate_points(problem, points_at, tangent=tangent))
         return cls(problem, nlp)
 
     def solve(self) -> int | None:

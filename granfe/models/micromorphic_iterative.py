@@ -129,6 +129,14 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
     def internal_work(self, w, dw, state):
         return ufl.dot(self._stress(w, state), self.measures(dw))
 
+    def point_work(self, w, dw, state):
+        """The virtual work of the stress of the last evaluation, ``stress . x(dw)``: the
+        residual at fields the points were just evaluated at (:meth:`internal_work` there to
+        round-off: its expansion's other term is ``tangent (x(w) - measures)``, zero) without
+        the tangent, which a step on a fixed (elastic) Jacobian does not need: its residual
+        then packs 45 values a point, not 2115 (:meth:`evaluate_points` ``tangent=False``)."""
+        return ufl.dot(state["stress"], self.measures(dw))
+
     def elastic_work(self, w, dw):
         """The elastic model's virtual work (the explicit stepper's stability limit)."""
         return Micromorphic.internal_work(self, w, dw, {})
@@ -161,12 +169,19 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
                                      self.constants)
 
     # ---- the points -----------------------------------------------------------------
-    def evaluate_points(self, problem, fields=None) -> None:
+    def evaluate_points(self, problem, fields=None, tangent: bool = True) -> None:
         """The return at every quadrature point of this rank's cells for the current
         ``problem.w`` (``fields``: a UFL expression of it whose residual is assembled instead,
         e.g. generalized-alpha's mid-point fields): trial plastic state, and the stress and
         tangent the residual expands about (committed and trial alike). Ghost cells from
-        their owners. Collective."""
+        their owners. Collective.
+
+        ``tangent=False``: the stress and measures only, the tangent left as it was (a
+        residual of :meth:`point_work`, which has none, or a commit): in 3D the tangent is
+        2025 values a point, written twice, and it was most of this call's time and of the
+        residual's coefficient packing (the elastic-Jacobian quasi-Newton step never reads
+        it). The expansion ``stress + tangent (x(w) - measures)`` then still holds at the
+        evaluated fields, where ``x(w) = measures`` to round-off."""
         state, gdim = problem.state, problem.gdim
         fields = problem.w if fields is None else fields
         if id(fields) not in self._measures:
@@ -178,13 +193,19 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
         cells = np.arange(domain.topology.index_map(domain.topology.dim).size_local, dtype=np.int32)
         idx = measure_indices(gdim)
         n_idx = len(idx)
+        full = n_idx == NX                 # 3D: every component, no gather or scatter of them
         x_in = self._measures[id(fields)][1].eval(domain, cells).reshape(-1, n_idx)
         npts = x_in.shape[0]
-        x = np.zeros((npts, NX))
-        x[:, idx] = x_in
+        if full:
+            x = x_in
+        else:
+            x = np.zeros((npts, NX))
+            x[:, idx] = x_in
 
         def dofs(name):
-            return state.committed[name].function_space.dofmap.list[: len(cells)].ravel()
+            d = state.committed[name].function_space.dofmap.list[: len(cells)].ravel()
+            # the owned cells' points in order (a quadrature space's usual numbering): a slice
+            return slice(0, d.size) if np.array_equal(d, np.arange(d.size)) else d
 
         def owned(name, size):
             return state.committed[name].x.array.reshape(-1, size)[dofs(name)]
@@ -196,7 +217,7 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
         eq_old = np.zeros((npts, LEVEL_COUNT))
         eq_old[:, : 2 + gdim] = owned("equivalent_plastic_strain", 2 + gdim)
         y, C, xp, eq, flags, failed = point_return(x, xp_old, eq_old, self.K, self.cones,
-                                                   self.has_cone)
+                                                   self.has_cone, tangent)
         failed = domain.comm.allreduce(failed)
         if failed:
             # a NaN residual makes SNES fail and the problem restore the last good state
@@ -205,10 +226,13 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
         trial = {"plastic_strain": xp[:, :9], "plastic_micro_strain": xp[:, 9:18],
                  "plastic_micro_gradient": xp[:, 18: 18 + 9 * gdim],
                  "equivalent_plastic_strain": eq[:, : 2 + gdim], "yielding": yielding}
-        cache = {"stress": y[:, idx], "measures": x_in, "tangent": C[:, idx][:, :, idx]}
+        cache = {"stress": y if full else y[:, idx], "measures": x_in}
+        if tangent:
+            cache["tangent"] = C if full else C[:, idx][:, :, idx]
         for name, values in list(trial.items()) + list(cache.items()):
-            targets = [state.trial[name]] + ([state.committed[name]] if name in cache else [])
             rows = np.ascontiguousarray(values).reshape(npts, -1)
-            for f in targets:
-                f.x.array.reshape(-1, rows.shape[1])[dofs(name)] = rows
-                f.x.scatter_forward()
+            f = state.trial[name]
+            f.x.array.reshape(-1, rows.shape[1])[dofs(name)] = rows
+            f.x.scatter_forward()
+            if name in cache:              # the same values: a copy of the whole array
+                state.committed[name].x.array[:] = f.x.array

@@ -396,9 +396,10 @@ def _after_failure(modes, z, offsets, dims, y, apex_tries, SYM):
 
 @numba.njit(cache=True)
 def _return_one(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PROJ, PDEV, VEC_I, SYM,
-                y_out, C_out, xp_out, eq_out, flags_out):
+                y_out, C_out, xp_out, eq_out, flags_out, tangent):
     """One point (module docstring). Returns the number of active-set passes, -1 if none
-    converged."""
+    converged. ``tangent``: write the consistent tangent of a plastic point to ``C_out``
+    (an elastic point's is ``K``, which the caller writes), else leave it."""
     dims = np.empty(5, dtype=np.int64)
     for i in range(5):
         dims[i] = 6 if SYM[i] else 9
@@ -427,7 +428,6 @@ def _return_one(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PROJ, PDEV, VE
     xp_out[:] = xp_old
     eq_out[:] = eq_old
     y_out[:] = y
-    C_out[:, :] = K
     a0, l0 = np.zeros((5, 9)), np.zeros(5)
     for passes in range(1, 31):
         active = 0
@@ -467,23 +467,27 @@ def _return_one(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PROJ, PDEV, VE
             if modes[i] == 2:                         # the closed form's d_eq at the apex
                 dev_dp = PDEV @ (xp[9 * i: 9 * i + 9] - xp_old[9 * i: 9 * i + 9])
                 eq_out[i] += math.sqrt(2.0 * np.dot(dev_dp, dev_dp))
-        C_out[:, :] = K - Yz @ np.linalg.solve(J, Ry @ K)
+        if tangent:
+            C_out[:, :] = K - Yz @ np.linalg.solve(J, Ry @ K)
         return passes
     return -1
 
 
 @numba.njit(cache=True)
 def _return_all(x, K, xp_old, eq_old, cones, has_cone, moduli, Q, PROJ, PDEV, VEC_I, SYM,
-                y, C, xp, eq, flags):
+                y, C, xp, eq, flags, tangent):
     failed = 0
     for n in range(x.shape[0]):
+        if tangent:
+            C[n, :, :] = K
         if _return_one(x[n], K, xp_old[n], eq_old[n], cones, has_cone, moduli, Q, PROJ, PDEV,
-                       VEC_I, SYM, y[n], C[n], xp[n], eq[n], flags[n]) < 0:
+                       VEC_I, SYM, y[n], C[n if tangent else 0], xp[n], eq[n], flags[n],
+                       tangent) < 0:
             failed += 1
     return failed
 
 
-def point_return(x, xp_old, eq_old, K, cones, has_cone):
+def point_return(x, xp_old, eq_old, K, cones, has_cone, tangent: bool = True):
     """The return at n points.
 
     Args:
@@ -493,6 +497,8 @@ def point_return(x, xp_old, eq_old, K, cones, has_cone):
         K: :func:`stiffness` (45, 45).
         cones: (5, 4): ``A, B, k0, H`` of each level's cone.
         has_cone: (5,) bool: the level is plastic.
+        tangent: compute the consistent tangents (False: ``C`` is None; a yielding point
+            then skips a 45 x 45 solve, every point the tangent's 2025 values).
 
     Returns:
         ``(y, C, xp, eq, yielding, failed)``: stresses (n, 45), consistent tangents
@@ -502,11 +508,12 @@ def point_return(x, xp_old, eq_old, K, cones, has_cone):
     """
     x = np.ascontiguousarray(x, dtype=float)
     n = x.shape[0]
-    y, C = np.empty((n, NX)), np.empty((n, NX, NX))
+    y, C = np.empty((n, NX)), np.empty((n if tangent else 1, NX, NX))
     xp, eq, flags = np.empty((n, NX)), np.empty((n, LEVEL_COUNT)), np.empty((n, LEVEL_COUNT))
     K = np.ascontiguousarray(K, dtype=float)
     failed = _return_all(x, K, np.ascontiguousarray(xp_old, dtype=float),
                          np.ascontiguousarray(eq_old, dtype=float),
                          np.ascontiguousarray(cones, dtype=float), np.asarray(has_cone, dtype=bool),
-                         level_moduli(K), _Q, _PROJ, _PDEV, _VEC_I, _SYMMETRIC, y, C, xp, eq, flags)
-    return y, C, xp, eq, flags, int(failed)
+                         level_moduli(K), _Q, _PROJ, _PDEV, _VEC_I, _SYMMETRIC, y, C, xp, eq, flags,
+                         bool(tangent))
+    return y, C if tangent else None, xp, eq, flags, int(failed)
