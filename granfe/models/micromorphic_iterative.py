@@ -65,7 +65,8 @@ class MicromorphicDruckerPragerIterative(Micromorphic):
     # no divergence test; a backtracking line search (every residual it tries evaluates the
     # points at its fields): full Newton steps flip a point's active set back and forth on a
     # finer mesh with coupled moduli (the 3D platens, 4 x 4 x 8 cells: |F| alternating
-    # 0.17 / 0.31 for 50 iterations; with "bt" 3-10 iterations a step)
+    # 0.17 / 0.31 for 50 iterations; with "bt" 3-10 iterations a step). Newton's only: the
+    # dynamic stepper's elastic-Jacobian quasi-Newton keeps its full step (granfe.dynamics)
     solver_options: ClassVar[dict] = {"snes_max_it": 50, "snes_divergence_tolerance": 1e300,
                                       "snes_linesearch_type": "bt"}
 
