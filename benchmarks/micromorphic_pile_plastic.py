@@ -1,6 +1,8 @@
 """The plastic micromorphic continuum in the reduced pile (`scenes/pile_3d_micromorphic.toml`,
 the scene of demos/3d/micromorphic_pile.py's elastic figures): q_c against depth, the count of
-yielded quadrature points (macro level) and the CPU time of every FE step, one packing.
+yielded quadrature points (macro level), the CPU time and the continuum solve's iterations of
+every FE step (the elastic-Jacobian quasi-Newton's, or with ``fallback`` Newton's after it
+failed), one packing.
 
 Run (one core): ``NUMBA_NUM_THREADS=1 python benchmarks/micromorphic_pile_plastic.py
 [--cohesion 800] [--set section.key=value ...]``; writes
@@ -71,6 +73,9 @@ def main():
                "summary": {"q_c_peak": float(qc[peak]), "depth_at_peak": steps[peak]["depth"],
                            "q_c_mean_last_half": float(qc[len(qc) // 2:].mean()),
                            "cpu_s_per_step_median": float(np.median([s["cpu_s"] for s in steps])),
+                           "solver_iterations_median": float(np.median([s["solver"]["iterations"]
+                                                                        for s in steps])),
+                           "fallbacks": cpt.stepper.fallbacks,
                            "push_cpu_s": float(sum(s["cpu_s"] for s in steps))},
                "steps": steps}
         if comm.rank == 0:
@@ -80,9 +85,11 @@ def main():
         c1 = time.process_time()
         h = cpt.advance()
         steps.append({"step": h["step"], "depth": h["depth"], "q_c": h["q_c"],
-                      "cpu_s": time.process_time() - c1, **plastic_points(cpt)})
+                      "cpu_s": time.process_time() - c1, **plastic_points(cpt),
+                      "solver": dict(cpt.stepper.last_solve)})
         log(f"step {h['step']}: depth {1e3 * h['depth']:.2f} mm q_c {h['q_c'] / 1e3:.3f} kPa, "
-            f"{steps[-1]['plastic_points']} plastic points, {steps[-1]['cpu_s']:.2f} s CPU")
+            f"{steps[-1]['plastic_points']} plastic points, {steps[-1]['cpu_s']:.2f} s CPU, "
+            f"solver {steps[-1]['solver']}")
         write(complete=len(cpt.history) == cpt.n_steps)
     log(f"wrote {args.results}")
 
