@@ -70,7 +70,7 @@ def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, iner
            h, dt, x0, hit, radius, material, table, start, pj32, live, hist, slip, etan, wi,
            ww, wp, wn, wu, wcol, whist, wslip, wetan, wf, wf_prev, wp_at, wforce, wp0, skin,
            ext, erows, ef, ex0, drag, dgroup, dweight, dwdt_m, dalpha, daxes, dscale, dshift,
-           dsu, dout, resp, rsp, pause_every, presc, pr_rows, pr_group, pr_base, pr_a, pr_b,
+           dsu, dout, resp, rsp, pause_every, sums, sum_rows, sum_out, presc, pr_rows, pr_group, pr_base, pr_a, pr_b,
            pr_vel, pr_om, pr_setom, pr_coef, gh, gprev, gnow, xg_at, xg_now, st, ist):
     """Steps s, s + 1, ... of a `Simulation.step` call of n steps, until n are done, a
     blow-up check is due (after the step that ends on a multiple of check_every: its second
@@ -83,7 +83,8 @@ def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, iner
     group drag if drag (`dem.drag.GroupDrag`'s arrays, applied where `step` applies it),
     a linear response if resp (rsp: `dem.response.LinearResponse.arrays`, applied after the
     drag), a pause after every pause_every-th step of the call (> 0: the step ends with
-    `_kick` and the call returns, as for a check),
+    `_kick` and the call returns, as for a check), the force rows sum_rows added to sum_out
+    (k, 3) after every force pass if sums (after the response),
     prescribed motions if presc (`dem.prescribed.Prescribed.pack`), the GHOST rows gh
     (force rows of the last pass gprev, valid if ist[3], and of this one gnow (ng, 15);
     positions at the last pass xg_at and at this one xg_now (ng, 3)). st (13,) float:
@@ -134,6 +135,10 @@ def _steps(s, n, check_every, x, v, omega, force, torque, fe, fd, td, mass, iner
                        dsu, dout, hit)
         if resp:
             linear_response(x, force, kind, hit, *rsp)
+        if sums:
+            for k in range(sum_rows.shape[0]):
+                for c in range(3):
+                    sum_out[k, c] += force[sum_rows[k], c]
         e = e1 + e2
         es = s1 + s2
         final = s == n - 1 or (nsteps + 1) % check_every == 0 or (

@@ -54,6 +54,7 @@ _NO_RESPONSE = (_I0, np.zeros((0, 2)), _I2, _F2, _F2, _I0, _I32, _F0, _F0, _I0, 
 _NO_PK = (np.zeros(0, np.int64), np.zeros(0, np.int64), _EMPTY, _EMPTY, _EMPTY, _EMPTY, _EMPTY,
           np.zeros(0, np.bool_), np.zeros((1, 1, 2)))
 """`dem.prescribed.Prescribed.pack` of no motion (the types `_steps` takes)."""
+_NO_SUMS = (np.zeros(0, np.int64), _EMPTY)   # `Simulation.step`'s sums: rows, out
 
 KD_PARALLEL_MIN = 4096
 """Particles from which, with more than one numba thread, `_kick_drift_par` runs (below, a
@@ -65,6 +66,22 @@ def _pause_every(every, pause) -> int:
     if every < 0:
         raise ValueError(f"Simulation.step: pause_every must be >= 0, got {every}")
     return every
+
+
+def _sums(sums, n: int):
+    """`Simulation.step`'s ``sums`` checked: (rows (k,) int64, out (k, 3) float64, written in
+    place), or (None, None)."""
+    if sums is None:
+        return None, None
+    rows, out = sums
+    rows = np.asarray(rows)
+    if rows.dtype != np.int64 or rows.ndim != 1 or (len(rows) and (rows.min() < 0 or rows.max() >= n)):
+        raise ValueError(f"Simulation.step: sums' rows must be int64 indices in [0, {n}) (k,)")
+    if not (isinstance(out, np.ndarray) and out.dtype == np.float64 and out.shape == (len(rows), 3)
+            and out.flags.c_contiguous):
+        raise ValueError(f"Simulation.step: sums' out must be a C-contiguous float64 array of "
+                         f"shape ({len(rows)}, 3), written in place")
+    return rows, out
 
 
 def _apply(sim, *extras) -> None:
@@ -204,7 +221,7 @@ class Simulation(EnergyLedger, SimulationState):
         force pass (False only between two steps of one `step` call)."""
         p, nl, w = self.p, self.nl, self.walls
         if nl.needs_rebuild(p.x, w.point, self.cell, disp2):
-            nl.build(p.x, p.radius, w.point, w.normal, self.cell)
+            nl.build(p.x, p.radius, w.point, w.normal, self.cell, skip=self._pair_skip())
             self._prune(nl)
             self._check_domain()
         h = [nl.hist, nl.slip, nl.etan, nl.whist, nl.wslip, nl.wetan]
@@ -322,16 +339,20 @@ class Simulation(EnergyLedger, SimulationState):
     def rebuild_neighbours(self) -> None:
         """Build the neighbour list now (positions or radii changed from outside by more than
         the skin allows, e.g. grains grown in place); the contact history is carried."""
-        self.nl.build(self.p.x, self.p.radius, self.walls.point, self.walls.normal, self.cell)
+        self.nl.build(self.p.x, self.p.radius, self.walls.point, self.walls.normal, self.cell,
+                      skip=self._pair_skip())
         self._prune(self.nl)
+
+    def _pair_skip(self):
+        """(n,) bool: the rows whose pairs among themselves the neighbour build leaves out
+        (``prescribed_pairs = False``: the prescribed rows, by their own kinds), or None."""
+        return None if self.prescribed_pairs else self._own_kinds() != FREE
 
     def _prune(self, nl):
         """Called after every neighbour build, before the force pass: drops the GHOST rows'
         candidates of ``free_only`` walls; a subclass may drop more (`dem.parallel` drops the
-        halo copies' own contacts)."""
-        if not self.prescribed_pairs and len(nl.pi):
-            k = self._own_kinds()
-            nl.keep_pairs((k[nl.pi] == FREE) | (k[nl.pj] == FREE))
+        halo copies' own contacts). (The pairs of two prescribed rows are not built at all
+        under ``prescribed_pairs = False``: `_pair_skip`.)"""
         w = self.walls
         if len(nl.wi) and w.free_only.any():
             nl.keep_walls(~(w.free_only[nl.ww] & (self.p.kind[nl.wi] == GHOST)))
@@ -367,7 +388,7 @@ class Simulation(EnergyLedger, SimulationState):
 
     # ---------------------------------------------------------------- stepping
     def step(self, n: int = 1, hook=None, prescribed=None, decay: float | None = None,
-             drag=None, response=None, pause_every: int = 0, pause=None):
+             drag=None, response=None, pause_every: int = 0, pause=None, sums=None):
         """Advance n steps of dt (velocity Verlet), with blow-up and domain checks.
 
         Between two steps of one call (unless a check falls in between) the second
@@ -391,8 +412,12 @@ class Simulation(EnergyLedger, SimulationState):
         every ``pause_every``-th step of the call (not after the last): the call's motions
         and loop go on after it, where a caller would otherwise split the call (a fluid step
         every few DEM steps, which may set external forces or a new response's reference).
-        Returns the number of steps done."""
+        ``sums``: a pair (rows (k,) int64, out (k, 3) float): after every force pass (and
+        the response) the force rows ``rows`` are added to ``out``, in the fused loop too (a
+        coupling's time-averaged reactions on its ghosts, which a hook would read at the
+        Python loop's cost). Returns the number of steps done."""
         p, dt, cell = self.p, self.dt, self.cell
+        sum_rows, sum_out = _sums(sums, p.n)
         pk = None if prescribed is None else prescribed.pack(int(n), dt, p.kind)
         h = 0.5 * dt
         per, lg, org = (0, _NO_L, _NO_O) if cell is None else \
@@ -416,7 +441,7 @@ class Simulation(EnergyLedger, SimulationState):
         while s < n:
             if fused:  # as many steps as it can in one numba call (`_steps`)
                 k, pending, gprev = self._fused(s, n, pending, pk, gprev, drag, response,
-                                                pause_every)
+                                                pause_every, None if sums is None else (sum_rows, sum_out))
                 s += k
                 if k and self.nsteps % self.check_every == 0:
                     self._check()
@@ -448,6 +473,8 @@ class Simulation(EnergyLedger, SimulationState):
             e, es = self._evaluate(True, d2 if cell is None else None, s == 0)
             gnow = self._ghost_rows(rowbuf[1] if gprev is rowbuf[0] else rowbuf[0]) if ghosts else None
             _apply(self, drag, response)
+            if sums is not None:
+                sum_out += p.force[sum_rows]
             last = hook is not None and bool(hook())
             if len(self._ghosts) != ng:   # the buffers (and the numba gathers) are sized for ng
                 raise RuntimeError("Simulation.step: the hook changed the set of GHOST rows; "
@@ -490,7 +517,8 @@ class Simulation(EnergyLedger, SimulationState):
         cls = type(self)
         return all(getattr(cls, m) is getattr(Simulation, m) for m in self._LOOP_METHODS)
 
-    def _fused(self, s, n, pending, pk, gprev, drag=None, response=None, pause_every=0):
+    def _fused(self, s, n, pending, pk, gprev, drag=None, response=None, pause_every=0,
+               sums=None):
         """Steps s, s + 1, ... of a `step` call of n steps in `_steps` (no hook, damping or
         cell: the caller checks), if the serial drivers are the ones `_evaluate` would run.
         pk: the packed prescribed motions or None; gprev: the GHOST rows' forces of the
@@ -530,7 +558,7 @@ class Simulation(EnergyLedger, SimulationState):
                nl._wp0 if nw else _EMPTY, nl.skin, ext, erows, ef, ex0,
                *(_NO_DRAG if drag is None else (True, *drag.arrays(self))),
                response is not None, _NO_RESPONSE if response is None else response.arrays(),
-               pause_every, pk is not None,
+               pause_every, sums is not None, *(_NO_SUMS if sums is None else sums), pk is not None,
                *(_NO_PK if pk is None else pk), gh, gbuf, np.empty((ng, 15)), xg_at,
                np.empty((ng, 3)), st, ist)
         done = int(ist[2])

@@ -101,6 +101,40 @@ _pairs = njit(parallel=True, cache=True)(_pairs_py)
 _pairs_ser = njit(cache=True)(_pairs_py)
 
 
+def _pairs_apart_py(x, radius, skin, lo, h, nc, skip, others):
+    """`_pairs_py` without the pairs of two ``skip`` rows: a skip row scans a second grid
+    holding the ``others`` (the rows not skipped, ascending) only, so a dense rigid clump
+    (a penetrator of thousands of overlapping spheres) costs its neighbours, not its own
+    pairs. The same grid geometry: row i's cell is the same in both."""
+    n = x.shape[0]
+    cell, start, order = _bin(x, lo, h, nc)
+    _, start_o, order_o = _bin(x[others], lo, h, nc)
+    order_o = others[order_o]
+    counts = np.zeros(n + 1, np.int64)
+    dummy = np.empty(0, np.int64)
+    for i in prange(n):
+        if skip[i]:
+            counts[i + 1] = _scan(i, x, radius, skin, cell, start_o, order_o, nc, dummy, -1)
+        else:
+            counts[i + 1] = _scan(i, x, radius, skin, cell, start, order, nc, dummy, -1)
+    for i in range(n):
+        counts[i + 1] += counts[i]
+    pj = np.empty(counts[n], np.int64)
+    pi = np.empty(counts[n], np.int64)
+    for i in prange(n):
+        if skip[i]:
+            _scan(i, x, radius, skin, cell, start_o, order_o, nc, pj, counts[i])
+        else:
+            _scan(i, x, radius, skin, cell, start, order, nc, pj, counts[i])
+        for k in range(counts[i], counts[i + 1]):
+            pi[k] = i
+    return pi, pj
+
+
+_pairs_apart = njit(parallel=True, cache=True)(_pairs_apart_py)
+_pairs_apart_ser = njit(cache=True)(_pairs_apart_py)
+
+
 @njit(cache=True)
 def _scan_periodic(i, x, s, radius, skin, h, cell, start, order, nb, out, img, pos):
     """As `_scan` in a periodic cell: bins wrap around, each neighbour bin is visited once
@@ -235,9 +269,10 @@ def _sort_runs(pi, pj):
         a = b
 
 
-def build_pairs(x, radius, skin: float):
+def build_pairs(x, radius, skin: float, skip=None):
     """Pairs (pi, pj) (m,) int64, i < j, with |x_j - x_i| < r_i + r_j + skin; sorted by
-    (i, j). x (n, 3) [m], radius (n,) [m], skin [m] >= 0."""
+    (i, j). x (n, 3) [m], radius (n,) [m], skin [m] >= 0; ``skip`` (n,) bool or None: no
+    pair of two skipped rows (prescribed rows that do not touch each other)."""
     n = x.shape[0]
     if n < 2:
         return np.empty(0, np.int64), np.empty(0, np.int64)
@@ -248,8 +283,14 @@ def build_pairs(x, radius, skin: float):
     while np.prod(nc) > 8 * n + 64:  # sparse clouds: grow cells, keep memory O(N)
         h *= 2.0
         nc = np.maximum(np.floor(span / h).astype(np.int64) + 1, 1)
-    kern = _pairs if n >= PAIRS_PARALLEL_MIN else _pairs_ser
-    pi, pj = kern(x, radius, float(skin), lo, float(h), nc)
+    if skip is not None and skip.any():
+        kern = _pairs_apart if n >= PAIRS_PARALLEL_MIN else _pairs_apart_ser
+        skip = np.ascontiguousarray(skip, np.bool_)
+        pi, pj = kern(x, radius, float(skin), lo, float(h), nc,
+                      skip, np.flatnonzero(~skip).astype(np.int64))
+    else:
+        kern = _pairs if n >= PAIRS_PARALLEL_MIN else _pairs_ser
+        pi, pj = kern(x, radius, float(skin), lo, float(h), nc)
     _sort_runs(pi, pj)  # pi comes out ascending; j in cell order within each i
     return pi, pj
 
@@ -462,17 +503,21 @@ class NeighbourList:
         stretch = np.linalg.norm(m - np.eye(3), 2) * self._cut
         return 2.0 * d + stretch > self.skin
 
-    def build(self, x, radius, wall_p, wall_n, cell=None):
+    def build(self, x, radius, wall_p, wall_n, cell=None, skip=None):
         """Rebuild the lists at positions x (n, 3) [m]; with a `dem.periodic.PeriodicCell`
-        the particles are first wrapped into the cell (x modified in place)."""
+        the particles are first wrapped into the cell (x modified in place). ``skip`` (n,)
+        bool or None: no candidates between two skipped rows (`build_pairs`)."""
         n = self.n
         if cell is None:
-            pi, pj = build_pairs(x, radius, self.skin)
+            pi, pj = build_pairs(x, radius, self.skin, skip)
             img = np.zeros((len(pi), 3))
         else:
             cell.wrap(x)
             pi, pj, img = build_periodic_pairs(x - cell.origin, radius, self.skin, cell.h,
                                                cell.dim)
+            if skip is not None:
+                keep = ~(skip[pi] & skip[pj])
+                pi, pj, img = pi[keep], pj[keep], img[keep]
             self._h0 = cell.h.copy()
             self._cut = 2.0 * float(radius.max()) + self.skin
         self.hist, self.slip, self.etan = carry_history(

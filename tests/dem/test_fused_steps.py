@@ -124,6 +124,30 @@ def test_fused_steps_with_ghosts_and_prescribed_motion(monkeypatch):
     assert calls and sims[0][0].energy()["work_ghosts"] != 0.0
 
 
+def test_force_sums_over_the_steps_equal_a_hooks(monkeypatch):
+    """``step(sums=(rows, out))`` adds the rows' forces of every force pass to ``out`` in the
+    fused loop, the same bits as a hook summing them in the Python loop (a coupling's
+    time-averaged reactions on its ghosts); bad arguments are named."""
+    calls = counted(monkeypatch)
+    fused, loop = scene(3), scene(3)
+    rows = np.arange(3, fused.p.n, 7)
+    out, total = np.zeros((len(rows), 3)), np.zeros((len(rows), 3))
+
+    def add():
+        total[:] += loop.p.force[rows]
+
+    for n in (40, 1, 75):
+        fused.step(n, sums=(rows, out))
+        loop.step(n, hook=add)
+        same(fused, loop)
+        assert np.array_equal(out, total)
+    assert calls and np.abs(out).max() > 0
+    with pytest.raises(ValueError, match="sums' rows must be int64"):
+        fused.step(1, sums=(rows.astype(np.int32), out))
+    with pytest.raises(ValueError, match=r"sums' out must be .* shape \(%d, 3\)" % len(rows)):
+        fused.step(1, sums=(rows, np.zeros((len(rows), 2))))
+
+
 CACHE_SCRIPT = textwrap.dedent("""
     import numpy as np, dem
     from dem import fused_steps

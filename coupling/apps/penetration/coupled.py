@@ -1045,23 +1045,25 @@ class CoupledPenetration:
         as nodal loads ``N^T f`` (relaxed by ``prm.relaxation``)."""
         prm, sim, rows = self.prm, self.sim, self.ghost_local
         total = np.zeros_like(self.f0)
+        sums = None if self.distributed else (rows.astype(np.int64), np.zeros((len(rows), 3)))
 
-        def add_reactions():
-            if self.distributed:   # this rank's owned ghosts; summed over the ranks after
-                at, local = self._owned_ghosts()
-                total[at] += sim.local.p.force[local, :prm.dim]
-            else:
-                total[:] += sim.p.force[rows, :prm.dim]
+        def add_reactions():   # this rank's owned ghosts; summed over the ranks after
+            at, local = self._owned_ghosts()
+            total[at] += sim.local.p.force[local, :prm.dim]
 
         def exchange():
             if self.distributed:
                 total[:] = self.comm.allreduce(total)
+            else:   # (the DEM's own sums over its steps: its fused loop, no hook)
+                total[:] = sums[1][:, :prm.dim]
             push = total / prm.substeps - self.f0
             self.f_applied += prm.relaxation * (push - self.f_applied)
             self.interface.apply(self.f_applied)
             return {"ghost_push": float(np.abs(self.f_applied).sum())}
 
-        return self._staggered_step(exchange, hook=add_reactions)
+        if sums is None:
+            return self._staggered_step(exchange, hook=add_reactions)
+        return self._staggered_step(exchange, sums=sums)
 
     def _owned_ghosts(self) -> tuple[np.ndarray, np.ndarray]:
         """The ghosts this rank owns in the distributed run: their positions in the ghost
@@ -1071,10 +1073,11 @@ class CoupledPenetration:
             self._ghost_rows = (sim.gid, *sim.owned_rows(self.ghost_local))
         return self._ghost_rows[1], self._ghost_rows[2]
 
-    def _staggered_step(self, exchange, hook=None) -> dict:
+    def _staggered_step(self, exchange, hook=None, sums=None) -> dict:
         """One FE step of a staggered exchange: one DEM sub-cycle (``hook`` after each DEM
-        step) with the ghosts heading for the last FE state, ``exchange()`` hands the grains
-        to the FE (it returns extra history entries), one FE solve."""
+        step; ``sums``: `dem.Simulation.step`'s force sums) with the ghosts heading for the
+        last FE state, ``exchange()`` hands the grains to the FE (it returns extra history
+        entries), one FE solve."""
         prm, sim, st = self.prm, self.sim, self.stepper
         k, clock = len(self.history), time.perf_counter
         t0 = clock()
@@ -1087,8 +1090,11 @@ class CoupledPenetration:
         ghosts = self._ghosts(g_prev, g_next)
         for servo in self.servos:   # the top plate's speed, held over the sub-cycle
             servo(sim)
+        step = self._before_sub_cycle(hook)
+        if sums is not None:
+            step["sums"] = sums
         self.depth = sub_cycle(sim, prm.substeps, (self.pen_index, self.pen0), self.depth,
-                               prm.velocity, VERTICAL[prm.dim], ghosts, **self._before_sub_cycle(hook))
+                               prm.velocity, VERTICAL[prm.dim], ghosts, **step)
         t1 = clock()
         t_dem = t1 - t_dem
         extra = exchange()
