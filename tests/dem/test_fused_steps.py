@@ -144,7 +144,7 @@ def test_force_sums_over_the_steps_equal_a_hooks(monkeypatch):
     assert calls and np.abs(out).max() > 0
     with pytest.raises(ValueError, match="sums' rows must be int64"):
         fused.step(1, sums=(rows.astype(np.int32), out))
-    with pytest.raises(ValueError, match=r"sums' out must be .* shape \(%d, 3\)" % len(rows)):
+    with pytest.raises(ValueError, match=rf"sums' out must be .* shape \({len(rows)}, 3\)"):
         fused.step(1, sums=(rows, np.zeros((len(rows), 2))))
 
 
