@@ -78,42 +78,22 @@ def _scan(i, x, radius, skin, cell, start, order, nc, out, pos):
     return cnt
 
 
-def _pairs_py(x, radius, skin, lo, h, nc):
+def _pairs_py(x, radius, skin, lo, h, nc, apart, skip, others):
+    """Candidate pairs (i < j), pi ascending. ``apart``: no pairs of two ``skip`` rows: a
+    skip row scans a second grid holding the ``others`` (the rows not skipped, ascending)
+    only, so a dense rigid clump (a penetrator of thousands of overlapping spheres) costs
+    its neighbours, not its own pairs (the same grid geometry: row i's cell is the same in
+    both)."""
     n = x.shape[0]
     cell, start, order = _bin(x, lo, h, nc)
+    start_o, order_o = start, order
+    if apart:
+        _, start_o, order_o = _bin(x[others], lo, h, nc)
+        order_o = others[order_o]
     counts = np.zeros(n + 1, np.int64)
     dummy = np.empty(0, np.int64)
     for i in prange(n):
-        counts[i + 1] = _scan(i, x, radius, skin, cell, start, order, nc, dummy, -1)
-    for i in range(n):
-        counts[i + 1] += counts[i]
-    pj = np.empty(counts[n], np.int64)
-    pi = np.empty(counts[n], np.int64)
-    for i in prange(n):
-        _scan(i, x, radius, skin, cell, start, order, nc, pj, counts[i])
-        for k in range(counts[i], counts[i + 1]):
-            pi[k] = i
-    return pi, pj
-
-
-PAIRS_PARALLEL_MIN = 4096  # particles; below, a thread rendezvous costs more than it saves
-_pairs = njit(parallel=True, cache=True)(_pairs_py)
-_pairs_ser = njit(cache=True)(_pairs_py)
-
-
-def _pairs_apart_py(x, radius, skin, lo, h, nc, skip, others):
-    """`_pairs_py` without the pairs of two ``skip`` rows: a skip row scans a second grid
-    holding the ``others`` (the rows not skipped, ascending) only, so a dense rigid clump
-    (a penetrator of thousands of overlapping spheres) costs its neighbours, not its own
-    pairs. The same grid geometry: row i's cell is the same in both."""
-    n = x.shape[0]
-    cell, start, order = _bin(x, lo, h, nc)
-    _, start_o, order_o = _bin(x[others], lo, h, nc)
-    order_o = others[order_o]
-    counts = np.zeros(n + 1, np.int64)
-    dummy = np.empty(0, np.int64)
-    for i in prange(n):
-        if skip[i]:
+        if apart and skip[i]:
             counts[i + 1] = _scan(i, x, radius, skin, cell, start_o, order_o, nc, dummy, -1)
         else:
             counts[i + 1] = _scan(i, x, radius, skin, cell, start, order, nc, dummy, -1)
@@ -122,7 +102,7 @@ def _pairs_apart_py(x, radius, skin, lo, h, nc, skip, others):
     pj = np.empty(counts[n], np.int64)
     pi = np.empty(counts[n], np.int64)
     for i in prange(n):
-        if skip[i]:
+        if apart and skip[i]:
             _scan(i, x, radius, skin, cell, start_o, order_o, nc, pj, counts[i])
         else:
             _scan(i, x, radius, skin, cell, start, order, nc, pj, counts[i])
@@ -131,8 +111,10 @@ def _pairs_apart_py(x, radius, skin, lo, h, nc, skip, others):
     return pi, pj
 
 
-_pairs_apart = njit(parallel=True, cache=True)(_pairs_apart_py)
-_pairs_apart_ser = njit(cache=True)(_pairs_apart_py)
+PAIRS_PARALLEL_MIN = 4096  # particles; below, a thread rendezvous costs more than it saves
+_pairs = njit(parallel=True, cache=True)(_pairs_py)
+_pairs_ser = njit(cache=True)(_pairs_py)
+_NO_SKIP = (np.zeros(0, np.bool_), np.zeros(0, np.int64))
 
 
 @njit(cache=True)
@@ -283,14 +265,12 @@ def build_pairs(x, radius, skin: float, skip=None):
     while np.prod(nc) > 8 * n + 64:  # sparse clouds: grow cells, keep memory O(N)
         h *= 2.0
         nc = np.maximum(np.floor(span / h).astype(np.int64) + 1, 1)
-    if skip is not None and skip.any():
-        kern = _pairs_apart if n >= PAIRS_PARALLEL_MIN else _pairs_apart_ser
+    kern = _pairs if n >= PAIRS_PARALLEL_MIN else _pairs_ser
+    apart = skip is not None and bool(skip.any())
+    if apart:
         skip = np.ascontiguousarray(skip, np.bool_)
-        pi, pj = kern(x, radius, float(skin), lo, float(h), nc,
-                      skip, np.flatnonzero(~skip).astype(np.int64))
-    else:
-        kern = _pairs if n >= PAIRS_PARALLEL_MIN else _pairs_ser
-        pi, pj = kern(x, radius, float(skin), lo, float(h), nc)
+    pi, pj = kern(x, radius, float(skin), lo, float(h), nc, apart,
+                  *((skip, np.flatnonzero(~skip).astype(np.int64)) if apart else _NO_SKIP))
     _sort_runs(pi, pj)  # pi comes out ascending; j in cell order within each i
     return pi, pj
 

@@ -24,6 +24,25 @@ def test_cell_list_equals_brute_force(dim, seed):
         assert (pi < pj).all()
 
 
+@pytest.mark.parametrize("n", [400, 5000])
+def test_skipped_rows_make_no_pairs_among_themselves(n):
+    """``build_pairs(skip=)`` is the full list less the pairs of two skipped rows, in the
+    same order (the serial kernel and the parallel one above PAIRS_PARALLEL_MIN rows); all
+    rows skipped: no pairs."""
+    rng = np.random.default_rng(7)
+    x = rng.uniform(0, 0.01 * (n / 400) ** (1 / 3), (n, 3))
+    r = rng.uniform(0.5e-3, 1.5e-3, n)
+    skip = rng.random(n) < 0.3
+    skip[:5] = True   # (a dense clump of skipped rows among the others)
+    x[:5] = x[5] + rng.uniform(-1e-4, 1e-4, (5, 3))
+    pi, pj = build_pairs(x, r, 2e-4)
+    keep = ~(skip[pi] & skip[pj])
+    qi, qj = build_pairs(x, r, 2e-4, skip)
+    assert keep.sum() < len(pi) and np.array_equal(qi, pi[keep]) and np.array_equal(qj, pj[keep])
+    assert len(build_pairs(x, r, 2e-4, np.ones(n, bool))[0]) == 0
+    assert np.array_equal(build_pairs(x, r, 2e-4, np.zeros(n, bool))[0], pi)
+
+
 def test_history_carried_by_key():
     old = np.array([3, 7, 12, 20])
     hist = np.arange(12.0).reshape(4, 3)
