@@ -149,6 +149,35 @@ def test_3d_penetration_restart_continues_the_run(tmp_path):
     assert (out / "grains.pvd").read_text().count("<DataSet") == 1
 
 
+CPTU_SMALL = [a for kv in ("chamber.width=0.16", "chamber.depth=0.12", "chamber.element_size_window=0.008",
+                            "chamber.element_size_far=0.03", "grains.radius=1.5e-3", "grains.jitter=0.4",
+                            "grains.friction=0.8", "grains.settle_time=0.15", "window.half_width=0.025",
+                            "window.depth=0.045", "window.handshake=1.0", "penetrator.radius=0.0045",
+                            "penetrator.depth=0.006", "coupling.substeps=50", "coupling.dt_factor=4.0",
+                            "fluid.permeability=1e-11", "fluid.compressibility=1e-6",
+                            "fluid.saturation_time=0.02", "fluid.every=10", "output.checkpoint_every=3",
+                            "output.png=false", "output.frames=1", "output.fields=false")
+              for a in ("--set", kv)]
+
+
+def test_saturated_penetration_restart_repeats_the_run(tmp_path):
+    """granfe run of the CPTu scene (small, checkpoints every 3 FE steps) then granfe
+    restart from the last checkpoint: q_c and u2 of the restarted steps equal the
+    uninterrupted run's to the bit (the fluid's state is in the checkpoint)."""
+    out = tmp_path / "cptu"
+    proc = granfe("run", "scenes/cptu_2d.toml", "--out", str(out), "--no-progress", *CPTU_SMALL)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    first = json.loads((out / "results.json").read_text())
+    step = json.loads((out / "checkpoint" / "state.json").read_text())["step"]
+    assert 0 < step < len(first["history"]) and "fluid" in first
+    proc = granfe("restart", str(out), "--no-progress")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    again = json.loads((out / "results.json").read_text())
+    assert again["restarted_from_step"] == step
+    a = [(h["q_c"], h["u2"]) for h in first["history"]]
+    assert a == [(h["q_c"], h["u2"]) for h in again["history"]] and any(q for q, _ in a)
+
+
 def test_restart_without_checkpoint_is_named(tmp_path):
     (tmp_path / "scene.toml").write_text(open(ROOT / "scenes/cpt_3d.toml").read())
     proc = granfe("restart", str(tmp_path), "--no-progress")
