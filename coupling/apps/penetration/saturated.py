@@ -516,18 +516,16 @@ class ChamberFlow(DarcyFlow):
             raise ValueError(f"checkpoint field fluid x_last has {self._x_last.shape} rows, the "
                              f"run {self.particles} grains")
         num_cells = self.domain.topology.index_map(self.domain.topology.dim).size_local
-        for name, tracker in (("grains", self), ("cone", self._cone), ("probes", self._probes)):
+        for name, tracker in (("grains", None), ("cone", self._cone), ("probes", self._probes)):
             if f"{name}.mine" not in d:
                 continue
-            cells = np.asarray(d[f"{name}.cells"], np.int32)
-            if len(cells) != len(d[f"{name}.mine"]) or (len(cells) and cells.max() >= num_cells):
+            mine, cells = np.asarray(d[f"{name}.mine"], np.int64), np.asarray(d[f"{name}.cells"], np.int32)
+            if len(cells) != len(mine) or (len(cells) and cells.max() >= num_cells):
                 raise ValueError(f"checkpoint field fluid {name}.cells does not fit this mesh")
-            space = self._grains if tracker is self else tracker.space
-            if tracker is self:
-                self._mine = np.asarray(d["grains.mine"], np.int64)
+            if tracker is None:   # (the grains': DarcyFlow's own)
+                self._mine, self._grains.cells = mine, cells
             else:
-                tracker.mine = np.asarray(d[f"{name}.mine"], np.int64)
-            space.cells = cells
+                tracker.mine, tracker.space.cells = mine, cells
 
     # ---- readings -------------------------------------------------------------------------
     def readings(self) -> dict:
