@@ -522,7 +522,7 @@ class CoupledPenetration:
         self.g_prev = self._ghost_motion()
         # the iterated exchange's accelerator (unused by the loose one); the last step's pairs
         # are reused: the next step's map is nearly the same
-        self.accelerator = IQNILS(self.interface, prm.relaxation, IQNOptions(reuse=1))
+        self.accelerator = self._accelerator()
         # the forces exchange: the free grains' push on the ghosts at the start (the FE holds the
         # increment from there), and the last one the continuum was loaded with (relaxed)
         self.f0 = self.f_applied = None
@@ -1207,6 +1207,11 @@ class CoupledPenetration:
         positions ``x_ref``. Window nodes with few grains in their support (the free surface)
         stay FE dofs: an ill-conditioned projection there would amplify the grains' noise."""
         return CouplingInterface(self.problem, self.x_ref, self.kinds, self.regions, min_support=0.3)
+
+    def _accelerator(self) -> IQNILS:
+        """The iterated exchange's accelerator on the interface (the last step's pairs
+        reused: the next step's map is nearly the same)."""
+        return IQNILS(self.interface, self.prm.relaxation, IQNOptions(reuse=1))
 
     def _checkpoint_files(self, tmp: Path) -> list[str]:
         """A subclass's own files of a checkpoint, written into ``tmp`` on every rank (their

@@ -78,7 +78,6 @@ from coupling.apps.penetration.coupled import (
     penetrator_clump,
 )
 from coupling.apps.penetration.parameters import MovingWindowParameters, PenetrationParameters
-from coupling.interface import CouplingInterface
 from coupling.locate import owner_ranks
 from coupling.operators import FieldBasis
 from coupling.regions import Box, CouplingRegions, Union
@@ -813,7 +812,7 @@ class MovingWindowPenetration(CoupledPenetration):
         """Interface and stepper for the current grains; the FE state carries on."""
         problem, old = self.problem, self.stepper
         problem.bcs[:] = [bc for bc in problem.bcs if bc is not self.interface.bc]
-        iface = CouplingInterface(problem, self.x_ref, self.kinds, self.regions, min_support=0.3)
+        iface = self._displacement_interface()
         w = problem.w.x.array
         iface.set_prescribed(np.concatenate([w[f.prescribed] for f in iface.fields]))
         self._stepper_count += 1

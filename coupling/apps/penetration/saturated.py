@@ -89,7 +89,6 @@ from coupling.apps.penetration.coupled import CoupledPenetration
 from coupling.apps.penetration.fluid import FluidParameters
 from coupling.apps.penetration.parameters import VERTICAL
 from coupling.apps.penetration.penetrators import tip_height
-from coupling.interface import IQNILS, IQNOptions
 from coupling.locate import locate_owned, owner_ranks, relocate
 from coupling.pore_fluid import DarcyFlow, GrainSpace, PoreFluidParameters
 from dem.drag import group_means
@@ -652,7 +651,7 @@ class SaturatedPenetration(CoupledPenetration):
         # positions)
         self.problem.bcs[:] = [bc for bc in self.problem.bcs if bc is not self.interface.bc]
         self.interface = self._displacement_interface()
-        self.accelerator = IQNILS(self.interface, self.prm.relaxation, IQNOptions(reuse=1))
+        self.accelerator = self._accelerator()
         self.flow.p.x.array[:] = 0.0   # the push starts from hydrostatic
 
     # ---- checkpoints ----------------------------------------------------------------------
