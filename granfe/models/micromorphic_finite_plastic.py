@@ -158,8 +158,11 @@ def initial_state(shape: tuple = ()) -> dict:
 @numba.njit(cache=True)
 def _expm_sym(A):
     """The exponential of the symmetric part of a 3 x 3 (eigen-decomposition, exact to round-off)."""
-    w, V = np.linalg.eigh(0.5 * (A + A.T))
     out = np.zeros((3, 3))
+    if not (np.all(np.isfinite(A)) and np.max(np.abs(A)) < 50.0):
+        out[:, :] = np.nan                    # a wild Newton trial: no exception, a NaN
+        return out
+    w, V = np.linalg.eigh(0.5 * (A + A.T))
     for i in range(3):
         for j in range(3):
             for k in range(3):
@@ -168,9 +171,25 @@ def _expm_sym(A):
 
 
 @numba.njit(cache=True)
+def _inv3(a):
+    """Inverse of a 3 x 3 by cofactors; NaN (no exception: a Newton trial may be wild) where
+    it is singular or not finite."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            i1, i2, j1, j2 = (j + 1) % 3, (j + 2) % 3, (i + 1) % 3, (i + 2) % 3
+            out[i, j] = a[i1, j1] * a[i2, j2] - a[i1, j2] * a[i2, j1]
+    det = a[0, 0] * out[0, 0] + a[0, 1] * out[1, 0] + a[0, 2] * out[2, 0]
+    if det == 0.0 or not np.isfinite(det):
+        out[:, :] = np.nan
+        return out
+    return out / det
+
+
+@numba.njit(cache=True)
 def _elastic_measures(C, Psi, Gam, Fp, chip, Gp):
     """``(Ce, Psie, Ge, Z, Fpi, chipi)`` (module docstring)."""
-    Fpi, chipi = np.linalg.inv(Fp), np.linalg.inv(chip)
+    Fpi, chipi = _inv3(Fp), _inv3(chip)
     Ce = Fpi.T @ C @ Fpi
     Psie = Fpi.T @ Psi @ chipi
     X = np.zeros((3, 3, 3))
@@ -332,8 +351,10 @@ def _merit(R, modes, dims, offsets, moduli):
 
 @numba.njit(cache=True)
 def _newton(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, moduli,
-            Q, SYM, scale):
-    """Newton with a central-difference Jacobian and backtracking; (converged, z)."""
+            Q, SYM, scale, zfloor):
+    """Newton with a central-difference Jacobian and backtracking; (converged, z).
+    ``zfloor`` (5,): each level's least size of unknowns for the difference steps (a level
+    that joins the set starts from zero increments)."""
     nz = z.size
     R = _evaluate(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones,
                   Q, SYM)[0]
@@ -350,7 +371,7 @@ def _newton(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K,
         for i in range(5):
             if modes[i] != 0:
                 o, d = offsets[i], dims[i]
-                zs[o: o + d + 1] = max(zs[o], np.max(np.abs(z[o: o + d + 1])))
+                zs[o: o + d + 1] = max(zs[o], zfloor[i], np.max(np.abs(z[o: o + d + 1])))
         J = np.empty((nz, nz))
         for j in range(nz):
             h = 1e-7 * max(abs(z[j]), zs[j])
@@ -362,7 +383,9 @@ def _newton(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K,
             Rm = _evaluate(zm, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old,
                            K, cones, Q, SYM)[0]
             J[:, j] = (Rp - Rm) / (2.0 * h)
-        dz = np.linalg.solve(J, -R)
+        if not np.all(np.isfinite(J)):
+            return False, z
+        dz = np.linalg.lstsq(J, -R)[0]          # no exception where J is singular
         alpha, decreased = 1.0, False
         for _half in range(30):
             zt = z + alpha * dz
@@ -403,7 +426,7 @@ def _reference_stresses(C, Psi, Gam, Fp, chip, Gp, K):
                         w = Fpi[i, a] * chipi[j, b] * h
                         for k in range(3):
                             M[i, j, k] += w * Fpi[k, c]
-    Ci = np.linalg.inv(C)
+    Ci = _inv3(C)
     extra = Ci @ Psi @ T_ref.T
     CiG = np.zeros((3, 3, 3))
     for i in range(3):
@@ -456,6 +479,10 @@ def _point(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, has_cone, moduli, 
     scale = 1e-300
     for r in range(45):
         scale = max(scale, abs(ty[r]))
+    zfloor = np.empty(5)                       # a level's strains: its stresses / its modulus
+    for i in range(5):
+        G = moduli[i, 0] if moduli[i, 0] > 0.0 else 1.0
+        zfloor[i] = max(np.max(np.abs(ty[9 * i: 9 * i + 9])) / G, 1e-300)
     a_cone, a_apex = np.zeros((5, 9)), np.zeros((5, 9))
     l_cone, l_apex = np.zeros(5), np.zeros(5)
     _start(ty, cones, has_cone, eq_old, moduli, scale, Q, SYM, modes, a_cone, l_cone, a_apex,
@@ -483,7 +510,7 @@ def _point(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, has_cone, moduli, 
                 z[o: o + d] = a_apex[i, :d]
                 z[o + d] = l_apex[i]
         ok, z = _newton(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K,
-                        cones, moduli, Q, SYM, scale)
+                        cones, moduli, Q, SYM, scale, zfloor)
         _, ty, D, Fp, chip, Gp = _evaluate(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n,
                                            Gp_n, eq_old, K, cones, Q, SYM)
         if not ok:
