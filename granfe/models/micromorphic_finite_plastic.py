@@ -404,7 +404,7 @@ def _newton(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K,
 
 @numba.njit(cache=True)
 def _reference_stresses(C, Psi, Gam, Fp, chip, Gp, K):
-    """``(S, Sigma, M, psi)`` in the reference configuration at a plastic state
+    """``(S, Sigma, M, psi, T_ref)`` in the reference configuration at a plastic state
     (module docstring)."""
     Ce, Psie, Ge, Z, Fpi, chipi = _elastic_measures(C, Psi, Gam, Fp, chip, Gp)
     x, psiE, T, H = _partials(Ce, Psie, Ge, K)
@@ -441,7 +441,7 @@ def _reference_stresses(C, Psi, Gam, Fp, chip, Gp, K):
                     extra[i, j] += CiG[i, q, r] * M[j, q, r]
     S = psiE_ref + extra
     Sigma = psiE_ref + extra + extra.T
-    return S, Sigma, M, 0.5 * np.dot(x, K @ x)
+    return S, Sigma, M, 0.5 * np.dot(x, K @ x), T_ref
 
 
 @numba.njit(cache=True)
@@ -465,7 +465,7 @@ def _start(ty, cones, has_cone, eq_old, moduli, scale, Q, SYM, modes, a_cone, l_
 
 @numba.njit(cache=True)
 def _point(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, has_cone, moduli, Q, SYM,
-           Fp_out, chip_out, Gp_out, eq_out, flags, f_out):
+           Fp_out, chip_out, Gp_out, eq_out, flags, f_out, modes_out, z_out, zfloor):
     """One point: the return (module docstring). Writes the state, the trial flags and the
     final yield values; returns ``(passes, dissipation)``, passes -1 if no active set
     converged (the outputs then hold the trial state)."""
@@ -479,8 +479,7 @@ def _point(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, has_cone, moduli, 
     scale = 1e-300
     for r in range(45):
         scale = max(scale, abs(ty[r]))
-    zfloor = np.empty(5)                       # a level's strains: its stresses / its modulus
-    for i in range(5):
+    for i in range(5):                         # a level's strains: its stresses / its modulus
         G = moduli[i, 0] if moduli[i, 0] > 0.0 else 1.0
         zfloor[i] = max(np.max(np.abs(ty[9 * i: 9 * i + 9])) / G, 1e-300)
     a_cone, a_apex = np.zeros((5, 9)), np.zeros((5, 9))
@@ -532,6 +531,8 @@ def _point(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, has_cone, moduli, 
         Fp_out[:] = Fp
         chip_out[:] = chip
         Gp_out[:] = Gp
+        modes_out[:] = modes
+        z_out[: z.size] = z
         dissipation = 0.0
         for i in range(5):
             t = _level_stress(ty, i, SYM[i])
@@ -548,14 +549,118 @@ def _point(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, has_cone, moduli, 
 
 
 @numba.njit(cache=True)
-def _all(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_n, K, cones, has_cone, moduli, Q, SYM,
-         Fp, chip, Gp, eq, flags, f, passes, dissipation, S, Sigma, M, psi):
-    for n in range(C.shape[0]):
+def _fields_measures(x):
+    """``(F, C, Psi, Gamma)`` of the field derivatives ``x`` (45: grad u, phi, grad phi)."""
+    F, chi, gc = np.eye(3), np.eye(3), np.empty((3, 3, 3))
+    for r in range(9):
+        F[r // 3, r % 3] += x[r]
+        chi[r // 3, r % 3] += x[9 + r]
+    for r in range(27):
+        gc[r // 9, (r // 3) % 3, r % 3] = x[18 + r]
+    Gam = np.zeros((3, 3, 3))
+    for I in range(3):
+        for J in range(3):
+            for K in range(3):
+                for i in range(3):
+                    Gam[I, J, K] += F[i, I] * gc[i, J, K]
+    return F, F.T @ F, F.T @ chi, Gam
+
+
+@numba.njit(cache=True)
+def _nominal_at(x, z, modes, dims, offsets, Fp_n, chip_n, Gp_n, K, Q):
+    """The nominal stresses ``[P, Q, R]`` (45) of fields ``x`` and unknowns ``z``."""
+    F, C, Psi, Gam = _fields_measures(x)
+    Fp, chip, Gp, _ = _advance(z, modes, dims, offsets, Fp_n, chip_n, Gp_n, Q)
+    S, _, M, _, T_ref = _reference_stresses(C, Psi, Gam, Fp, chip, Gp, K)
+    y = np.zeros(45)
+    P, Qn = F @ S, F @ T_ref
+    for r in range(9):
+        y[r], y[9 + r] = P[r // 3, r % 3], Qn[r // 3, r % 3]
+    for i in range(3):
+        for J in range(3):
+            for L in range(3):
+                for I in range(3):
+                    y[18 + 9 * i + 3 * J + L] += F[i, I] * M[I, J, L]
+    return y
+
+
+@numba.njit(cache=True)
+def _tangent(x, z, modes, dims, offsets, Fp_n, chip_n, Gp_n, eq_old, K, cones, Q, SYM, zfloor):
+    """The consistent tangent ``d[P, Q, R] / dx`` (45 x 45) at the converged unknowns z:
+    ``Y_x - Y_z J^-1 R_x`` (implicit function theorem; every partial by central
+    differences, steps 1e-7 of each block's size)."""
+    nz = z.size
+    xs = np.empty(45)
+    big = max(np.max(np.abs(x)), 1e-300)
+    for j in range(45):
+        lo, hi = (0, 18) if j < 18 else (18, 45)
+        xs[j] = 1e-7 * max(np.max(np.abs(x[lo:hi])), 1e-3 * big, 1e-12)
+    Yx, Rx = np.empty((45, 45)), np.empty((nz, 45))
+    for j in range(45):
+        xp, xm = x.copy(), x.copy()
+        xp[j] += xs[j]
+        xm[j] -= xs[j]
+        Yx[:, j] = (_nominal_at(xp, z, modes, dims, offsets, Fp_n, chip_n, Gp_n, K, Q)
+                    - _nominal_at(xm, z, modes, dims, offsets, Fp_n, chip_n, Gp_n, K, Q)) \
+            / (2.0 * xs[j])
+        if nz > 0:
+            _, Cp, Pp, Gp_ = _fields_measures(xp)
+            _, Cm, Pm, Gm = _fields_measures(xm)
+            Rx[:, j] = (_evaluate(z, modes, dims, offsets, Cp, Pp, Gp_, Fp_n, chip_n, Gp_n,
+                                  eq_old, K, cones, Q, SYM)[0]
+                        - _evaluate(z, modes, dims, offsets, Cm, Pm, Gm, Fp_n, chip_n, Gp_n,
+                                    eq_old, K, cones, Q, SYM)[0]) / (2.0 * xs[j])
+    if nz == 0:
+        return Yx
+    _, C, Psi, Gam = _fields_measures(x)
+    Jz, Yz = np.empty((nz, nz)), np.empty((45, nz))
+    steps = np.empty(nz)
+    for i in range(5):
+        if modes[i] != 0:
+            o, d = offsets[i], dims[i]
+            steps[o: o + d + 1] = 1e-7 * max(np.max(np.abs(z[o: o + d + 1])), zfloor[i])
+    for j in range(nz):
+        h = steps[j]
+        zp, zm = z.copy(), z.copy()
+        zp[j] += h
+        zm[j] -= h
+        Jz[:, j] = (_evaluate(zp, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old,
+                              K, cones, Q, SYM)[0]
+                    - _evaluate(zm, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n,
+                                eq_old, K, cones, Q, SYM)[0]) / (2.0 * h)
+        Yz[:, j] = (_nominal_at(x, zp, modes, dims, offsets, Fp_n, chip_n, Gp_n, K, Q)
+                    - _nominal_at(x, zm, modes, dims, offsets, Fp_n, chip_n, Gp_n, K, Q)) \
+            / (2.0 * h)
+    return Yx - Yz @ np.linalg.lstsq(Jz, Rx)[0]
+
+
+@numba.njit(cache=True)
+def _all(x, Fp_n, chip_n, Gp_n, eq_n, K, cones, has_cone, moduli, Q, SYM, Fp, chip, Gp, eq,
+         flags, f, passes, dissipation, S, Sigma, M, psi, nominal, tangent, want_tangent):
+    dims = np.empty(5, dtype=np.int64)
+    for i in range(5):
+        dims[i] = 6 if SYM[i] else 9
+    for n in range(x.shape[0]):
+        _, C, Psi, Gam = _fields_measures(x[n])
+        modes, z_all, zfloor = np.zeros(5, dtype=np.int64), np.zeros(50), np.empty(5)
         passes[n], dissipation[n] = _point(
-            C[n], Psi[n], Gam[n], Fp_n[n], chip_n[n], Gp_n[n], eq_n[n], K, cones, has_cone,
-            moduli, Q, SYM, Fp[n], chip[n], Gp[n], eq[n], flags[n], f[n])
-        S[n], Sigma[n], M[n], psi[n] = _reference_stresses(C[n], Psi[n], Gam[n], Fp[n], chip[n],
-                                                           Gp[n], K)
+            C, Psi, Gam, Fp_n[n], chip_n[n], Gp_n[n], eq_n[n], K, cones, has_cone, moduli, Q,
+            SYM, Fp[n], chip[n], Gp[n], eq[n], flags[n], f[n], modes, z_all, zfloor)
+        S[n], Sigma[n], M[n], psi[n], _ = _reference_stresses(C, Psi, Gam, Fp[n], chip[n],
+                                                              Gp[n], K)
+        if passes[n] < 0:
+            modes[:] = 0
+        offsets = np.zeros(5, dtype=np.int64)
+        nz = 0
+        for i in range(5):
+            offsets[i] = nz
+            if modes[i] != 0:
+                nz += dims[i] + 1
+        z = z_all[:nz].copy()
+        nominal[n] = _nominal_at(x[n], z, modes, dims, offsets, Fp_n[n], chip_n[n], Gp_n[n], K, Q)
+        if want_tangent:
+            tangent[n] = _tangent(x[n], z, modes, dims, offsets, Fp_n[n], chip_n[n], Gp_n[n],
+                                  eq_n[n], K, cones, Q, SYM, zfloor)
 
 
 # ---- the numpy interface ---------------------------------------------------------------
@@ -578,7 +683,8 @@ def _flat_state(state, n):
                                  ("eq", (LEVEL_COUNT,))))
 
 
-def finite_return(grad_u, chi, grad_chi, state, material, tables: KernelTables | None = None):
+def finite_return(grad_u, chi, grad_chi, state, material, tables: KernelTables | None = None,
+                  tangent: bool = False):
     """The return at material points (3D): stresses and the updated plastic state.
 
     Args:
@@ -591,6 +697,8 @@ def finite_return(grad_u, chi, grad_chi, state, material, tables: KernelTables |
         material: a :class:`~granfe.models.micromorphic_drucker_prager.MicromorphicDruckerPragerMaterial`
             (any moduli; a level without a cone stays elastic).
         tables: :func:`kernel_tables` of the material (computed when None).
+        tangent: also the consistent tangent (central differences of the return's
+            equations, ~0.5 k evaluations of them a yielding point).
 
     Returns:
         ``(S, Sigma, M, new_state, info)``: the reference stresses (module docstring;
@@ -601,28 +709,39 @@ def finite_return(grad_u, chi, grad_chi, state, material, tables: KernelTables |
         also adds ``sqrt 2 |dev D|``, as the small-strain model's closed form, which leaves
         the point inside its cone), ``dissipation`` (...: ``sum_i t_i : D_i`` [J/m^3]), ``psi`` (...: the stored
         energy [J/m^3]), ``passes`` (...: active-set passes, -1 where the return failed and
-        the outputs hold the trial state).
+        the outputs hold the trial state), ``nominal`` (..., 45: ``[P, Q, R]`` = ``F S``,
+        ``F T^ref``, ``F_iI M_IJK``, the integrands of the residual against ``[grad du,
+        dphi, grad dphi]``, row-major) and with ``tangent`` ``tangent`` (..., 45, 45: the
+        derivative of ``nominal`` in ``[grad u, phi, grad phi]`` at the committed state).
     """
     if not isinstance(material, MicromorphicDruckerPragerMaterial):
         raise TypeError("finite_return: material must be a MicromorphicDruckerPragerMaterial")
     tab = tables or kernel_tables(material)
-    C, Psi, Gam, shape = _reference_measures(grad_u, chi, grad_chi)
-    n = C.shape[0]
+    grad_u = np.asarray(grad_u, dtype=float)
+    shape = grad_u.shape[:-2]
+    x = np.concatenate([grad_u.reshape(-1, 9),
+                        (np.asarray(chi, dtype=float) - np.eye(3)).reshape(-1, 9),
+                        np.asarray(grad_chi, dtype=float).reshape(-1, 27)], axis=1)
+    n = x.shape[0]
     Fp_n, chip_n, Gp_n, eq_n = _flat_state(state, n)
     Fp, chip, Gp, eq = np.empty_like(Fp_n), np.empty_like(chip_n), np.empty_like(Gp_n), \
         np.empty_like(eq_n)
     flags, f = np.empty((n, LEVEL_COUNT)), np.zeros((n, LEVEL_COUNT))
     passes, dissipation, psi = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
     S, Sigma, M = np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3, 3))
-    _all(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_n, tab.K, tab.cones, tab.has_cone, tab.moduli,
-         _Q, _SYMMETRIC, Fp, chip, Gp, eq, flags, f, passes, dissipation, S, Sigma, M, psi)
+    nominal, C = np.empty((n, 45)), np.empty((n if tangent else 1, 45, 45))
+    _all(x, Fp_n, chip_n, Gp_n, eq_n, tab.K, tab.cones, tab.has_cone, tab.moduli, _Q,
+         _SYMMETRIC, Fp, chip, Gp, eq, flags, f, passes, dissipation, S, Sigma, M, psi, nominal,
+         C, bool(tangent))
 
     def back(a):
         return a.reshape(tuple(shape) + a.shape[1:])
 
     new_state = {"Fp": back(Fp), "chip": back(chip), "Gp": back(Gp), "eq": back(eq)}
     info = {"yielding": back(flags), "f": back(f), "dissipation": back(dissipation),
-            "psi": back(psi), "passes": back(passes)}
+            "psi": back(psi), "passes": back(passes), "nominal": back(nominal)}
+    if tangent:
+        info["tangent"] = back(C)
     return back(S), back(Sigma), back(M), new_state, info
 
 
@@ -653,7 +772,7 @@ def level_stresses(grad_u, chi, grad_chi, state, material, tables: KernelTables 
 def _at_state(grad_u, chi, grad_chi, state, tab):
     C, Psi, Gam, shape = _reference_measures(grad_u, chi, grad_chi)
     Fp, chip, Gp, _ = _flat_state(state, C.shape[0])
-    outs = [_reference_stresses(C[n], Psi[n], Gam[n], Fp[n], chip[n], Gp[n], tab.K)
+    outs = [_reference_stresses(C[n], Psi[n], Gam[n], Fp[n], chip[n], Gp[n], tab.K)[:4]
             for n in range(C.shape[0])]
     return tuple(np.array([o[k] for o in outs]).reshape(tuple(shape) + np.shape(outs[0][k]))
                  for k in range(4))
