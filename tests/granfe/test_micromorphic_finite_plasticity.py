@@ -383,3 +383,77 @@ def test_consistent_tangent_is_the_derivative_of_the_return():
         fd[:, :, j] = (returned(plus) - returned(minus)) / (2 * h)
     for k in range(n):
         assert relative(info["tangent"][k], fd[k]) < 1e-6
+
+
+# ---- the FE model: one element -----------------------------------------------------------
+
+def uniaxial_point_driver(mat, strains):
+    """The material point in uniaxial stress by itself (no mesh): for each axial
+    displacement gradient u_z,z, the lateral u_x,x, u_y,y and phi (9) that make P_xx = P_yy
+    = 0 and Q = 0 (scipy's hybr on the returned stresses), the plastic state committed
+    step by step (the return's tangent as root's Jacobian). Returns (eq macro, P_zz) per
+    step."""
+    tab = kernel_tables(mat)
+    state, v = initial_state(), np.zeros(11)
+    out = []
+    rows = np.r_[0, 4, 9:18]                 # P_xx, P_yy, Q; unknowns u_x,x, u_y,y, phi
+
+    def fields(v, ezz):
+        return np.diag([v[0], v[1], ezz]), np.eye(3) + v[2:].reshape(3, 3), np.zeros((3, 3, 3))
+
+    for ezz in strains:
+        def residual(v, ezz=ezz, state=state):
+            info = finite_return(*fields(v, ezz), state, mat, tab, tangent=True)[4]
+            return info["nominal"][rows] / MU, info["tangent"][np.ix_(rows, rows)] / MU
+
+        sol = scipy.optimize.root(residual, v, jac=True, method="hybr",
+                                  options={"xtol": 1e-14})
+        assert np.abs(residual(sol.x)[0]).max() < 1e-12
+        v = sol.x
+        _, _, _, state, info = finite_return(*fields(v, ezz), state, mat, tab)
+        out.append((state["eq"][0], info["nominal"][8]))
+    return np.array(out), info["psi"]
+
+
+def test_one_element_uniaxial_compression_equals_the_point():
+    """One trilinear hexahedron (u, phi of degree 1, 8 points), symmetry planes, the top
+    pushed down 12 % in four steps, sides free, phi free, coupled moduli with all cones:
+    the macro level yields (Q = 0 leaves the micro stress zero), Newton on the consistent
+    tangent converges in a few iterations a step, and every point holds the material
+    point's own uniaxial state (scipy root on the lateral stretches and chi) to 1e-8; the
+    model's UFL stored energy at the committed state is the kernel's psi."""
+    from mpi4py import MPI
+
+    from dolfinx import fem, mesh
+
+    from granfe.models.micromorphic_finite_plastic import MicromorphicFiniteDruckerPrager
+    from granfe.problem import ContinuumProblem
+
+    mat = material(c=20e3)
+    domain = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1, mesh.CellType.hexahedron)
+    p = ContinuumProblem(domain, MicromorphicFiniteDruckerPrager(mat), degree=(1, 1),
+                         quadrature_degree=2, prefix="mmfdp_one_")
+    for axis, name in enumerate(("u_x", "u_y", "u_z")):
+        p.fix(lambda x, a=axis: np.isclose(x[a], 0.0), name)
+    top = p.fix(lambda x: np.isclose(x[2], 1.0), "u_z", 0.0)
+    strains = [-0.02, -0.05, -0.08, -0.12]
+    its, fe = [], []
+    for ezz in strains:
+        top.value = ezz
+        its.append(p.solve())
+        eq = p.state.owned("equivalent_plastic_strain").reshape(-1, 5)
+        stress = p.state.owned("stress").reshape(-1, 45)
+        assert np.ptp(eq[:, 0]) < 1e-10 * eq[:, 0].max()           # homogeneous
+        fe.append((eq[0, 0], stress[0, 8]))
+    fe = np.array(fe)
+    ref, psi = uniaxial_point_driver(mat, strains)
+    # the model's UFL stored energy at the committed plastic state = the kernel's psi
+    energy = fem.assemble_scalar(fem.form(p.model.stored_energy(p.split(p.w), p.state.committed)
+                                          * p.dx, jit_options=p.jit_options))
+    assert abs(energy - psi) < 1e-8 * psi
+    assert fe[0, 0] > 0 and np.all(np.diff(fe[:, 0]) > 0)
+    assert np.all(p.state.owned("equivalent_plastic_strain").reshape(-1, 5)[:, 1:] == 0)
+    np.testing.assert_allclose(fe, ref, rtol=1e-8)
+    assert max(its) <= 6, its
+    print("one element: iterations", its, "eq", fe[:, 0], "P_zz", fe[:, 1],
+          "vs the point", np.abs(fe / ref - 1).max())
