@@ -9,6 +9,7 @@ from granfe.models.drucker_prager import MicropolarDruckerPrager
 from granfe.models.micromorphic import Micromorphic
 from granfe.models.micromorphic_drucker_prager import MicromorphicDruckerPrager
 from granfe.models.micromorphic_finite import MicromorphicFiniteStrain
+from granfe.models.micromorphic_finite_plastic import MicromorphicFiniteDruckerPrager
 from granfe.models.micromorphic_iterative import MicromorphicDruckerPragerIterative
 from granfe.models.micropolar import Micropolar
 from granfe.models.poroelastic import MicropolarPoroelastic, Poroelastic
@@ -16,7 +17,7 @@ from granfe.models.quadrature_stress import QuadratureStress
 from granfe.models.strain_memory import StrainMemory
 
 __all__ = ["ContinuumModel", "Field", "MODELS", "model_class", "Micromorphic", "MicromorphicDruckerPrager",
-           "MicromorphicDruckerPragerIterative", "MicromorphicFiniteStrain",
+           "MicromorphicDruckerPragerIterative", "MicromorphicFiniteDruckerPrager", "MicromorphicFiniteStrain",
            "Micropolar", "MicropolarDruckerPrager", "MicropolarPoroelastic", "Poroelastic", "QuadratureStress",
            "StrainMemory"]
 
@@ -28,6 +29,7 @@ MODELS: dict[str, type[ContinuumModel]] = {
     MicromorphicFiniteStrain.name: MicromorphicFiniteStrain,
     MicromorphicDruckerPrager.name: MicromorphicDruckerPrager,
     MicromorphicDruckerPragerIterative.name: MicromorphicDruckerPragerIterative,
+    MicromorphicFiniteDruckerPrager.name: MicromorphicFiniteDruckerPrager,
     Poroelastic.name: Poroelastic,
     MicropolarPoroelastic.name: MicropolarPoroelastic,
     QuadratureStress.name: QuadratureStress,

@@ -426,8 +426,11 @@ def test_one_element_uniaxial_compression_equals_the_point():
 
     from dolfinx import fem, mesh
 
+    from granfe.models import MODELS
     from granfe.models.micromorphic_finite_plastic import MicromorphicFiniteDruckerPrager
     from granfe.problem import ContinuumProblem
+
+    assert MODELS["micromorphic_finite_drucker_prager"] is MicromorphicFiniteDruckerPrager
 
     mat = material(c=20e3)
     domain = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1, mesh.CellType.hexahedron)
