@@ -86,9 +86,21 @@ The unknowns ``(D_i, dl_i)`` of the yielding levels solve, with the flow directi
 end of the step, the equations of :mod:`granfe.models.micromorphic_return` (cone or apex;
 its active-set loop and its decoupled radial return as the predictor): Newton on the
 unknowns with a central-difference Jacobian (the residual is a few 3 x 3 products) and
-backtracking. The step's dissipation is reported as ``sum_i t_i(n+1) : D_i``.
+backtracking. The step's dissipation is reported as ``sum_i t_i(n+1) : D_i``. Measured on
+random states from committed plastic states, strains 1e-3 to 5e-2, coupled moduli, 96 %
+of the levels yielding: 0 failures in 9000 points, 4-7 ms a point.
 
-Plane strain is not handled here: the kernel is 3D (3 x 3 blocks, 5 levels).
+Consistent tangent: the nominal stresses ``y = [P, Q, R]`` (``P = F S``, ``Q = F T^ref``,
+``R_iJK = F_iI M_IJK``: the integrands of the residual against ``[grad du, dphi, grad
+dphi]``) as functions of ``x = [grad u, phi, grad phi]`` and the converged unknowns z,
+``dy/dx = y_x - y_z R_z^-1 R_x`` (R the return's equations; partials by central
+differences; ~25 ms a yielding point). :class:`MicromorphicFiniteDruckerPrager` runs the
+return and the tangent at the quadrature points of a mesh.
+
+Not here: plane strain (the kernel is 3D: 3 x 3 blocks, 5 levels), plastic spin, an
+analytic Jacobian of the return (the differences cost most of its time). The seeds do
+not reproduce Regueiro's (2010) equations; the formulation above is derived here and
+checked by the tests (tests/granfe/test_micromorphic_finite_plasticity.py).
 """
 
 from __future__ import annotations

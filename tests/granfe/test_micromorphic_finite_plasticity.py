@@ -385,6 +385,31 @@ def test_consistent_tangent_is_the_derivative_of_the_return():
         assert relative(info["tangent"][k], fd[k]) < 1e-6
 
 
+def test_hydrostatic_tension_returns_to_the_apex():
+    """F = chi = 1.02 I (Saint Venant-Kirchhoff macro energy, macro cone with dilatancy and
+    hardening): the macro level returns to its apex, F^p = exp(B dl / 3) I with ``A p = k0
+    + H dl`` (a scalar equation solved by brentq), the deviator zero."""
+    mat = MicromorphicDruckerPragerMaterial(SVK, macro=PATH_CONE)
+    A, B, k0 = PATH_CONE.constants
+    H, stretch = PATH_CONE.hardening, 1.02
+    lam3 = (3 * SVK.lam + 2 * SVK.mu)
+
+    def pressure(dl):
+        Ce = stretch**2 * np.exp(-2 * B * dl / 3)
+        return Ce * lam3 * (Ce - 1) / 2
+
+    dl = scipy.optimize.brentq(lambda dl: A * pressure(dl) - k0 - H * dl, 0.0, 1.0, xtol=1e-16)
+    F = stretch * np.eye(3)
+    _, _, _, state, info = finite_return(F - np.eye(3), F, np.zeros((3, 3, 3)), initial_state(),
+                                         mat)
+    t = level_stresses(F - np.eye(3), F, np.zeros((3, 3, 3)), state, mat)[0]
+    p = np.trace(t) / 3
+    assert info["passes"] > 0 and info["yielding"][0] == 1
+    assert np.abs(t - p * np.eye(3)).max() < 1e-10 * p
+    assert abs(p / pressure(dl) - 1) < 1e-10 and abs(state["eq"][0] / dl - 1) < 1e-8
+    np.testing.assert_allclose(state["Fp"], np.exp(B * dl / 3) * np.eye(3), rtol=1e-10, atol=1e-12)
+
+
 # ---- the FE model: one element -----------------------------------------------------------
 
 def uniaxial_point_driver(mat, strains):
