@@ -228,13 +228,13 @@ def test_objectivity():
 @pytest.mark.parametrize("dilatancy", [0.0, 30.0])
 def test_on_the_cones_with_nonnegative_dissipation(dilatancy):
     """Finite strain (entries ~ 0.02, rotations) from a committed plastic state, coupled
-    moduli, 200 points, nearly all levels yielding: every return converges, every level
+    moduli, 100 points, nearly all levels yielding: every return converges, every level
     ends on or inside its cone (on it to 1e-11 of the point's largest stress where it yielded), the
     step's dissipation sum t_i : D_i >= 0, the stored energy drops below the trial one for
     an associated flow, and isochoric flows (no dilatancy) keep det F^p and det chi^p."""
     mat = material(c=0.3 * MU * 0.02, hardening=0.2 * MU, dilatancy=dilatancy)
     tab = kernel_tables(mat)
-    n = 200
+    n = 100
     fields = random_fields(n, 11, 0.02, rotate=True)
     state = random_state(n, 12, 0.01)
     _, _, _, new, info = finite_return(*fields, state, mat, tab)
@@ -485,3 +485,54 @@ def test_one_element_uniaxial_compression_equals_the_point():
     assert max(its) <= 6, its
     print("one element: iterations", its, "eq", fe[:, 0], "P_zz", fe[:, 1],
           "vs the point", np.abs(fe / ref - 1).max())
+
+
+def test_rough_platens_residual_has_a_quadratic_taylor_remainder():
+    """Two trilinear hexahedra stacked between rough platens (u_x = u_y = 0 and phi = 0 top
+    and bottom; the middle nodes free), past a committed plastic step with every level yielding: the remainder
+    |F(w + h dw) - F(w) - h J(w) dw| of the assembled residual (the points evaluated at
+    every w) falls as h^2, so the Jacobian is the derivative of the residual."""
+    from mpi4py import MPI
+
+    import ufl
+    from dolfinx import fem, mesh
+
+    from granfe.models.micromorphic_finite_plastic import MicromorphicFiniteDruckerPrager
+    from granfe.problem import ContinuumProblem
+
+    domain = mesh.create_box(MPI.COMM_SELF, [[0, 0, 0], [1, 1, 1]], [1, 1, 2],
+                             mesh.CellType.hexahedron)
+    mat = material(c=20e3, friction=20.0, dilatancy=5.0)
+    p = ContinuumProblem(domain, MicromorphicFiniteDruckerPrager(mat), degree=(1, 1),
+                         quadrature_degree=2, prefix="mmfdp_taylor_")
+    bottom, top = (lambda x: np.isclose(x[2], 0.0)), (lambda x: np.isclose(x[2], 1.0))
+    for where, names in ((bottom, ("u", "phi")), (top, ("u_x", "u_y", "phi"))):
+        for name in names:
+            p.fix(where, name)
+    drive = p.fix(top, "u_z", 0.0)
+    drive.value = -0.02
+    p.solve()
+    drive.value = -0.03
+    p.solve(commit=False)
+    assert p.state.trial["yielding"].x.array.reshape(-1, 3).max(axis=0).tolist() == [1.0] * 3
+    F = p.residual()
+    Fc, dw = fem.form(F), fem.Function(p.V)
+    dw.x.array[:] = np.random.default_rng(0).standard_normal(dw.x.array.size) * 1e-3
+    for bc in p.bcs:
+        bc.set(dw.x.array, alpha=0.0)
+    Jdw = fem.form(ufl.action(ufl.derivative(F, p.w), dw))
+    w0 = p.w.x.array.copy()
+
+    def residual():
+        p.w.x.scatter_forward()
+        p.model.evaluate_points(p)
+        return fem.assemble_vector(Fc).array.copy()
+
+    R0, JdW = residual(), fem.assemble_vector(Jdw).array.copy()
+    remainders = []
+    for h in (1e-2, 5e-3, 2.5e-3, 1.25e-3):
+        p.w.x.array[:] = w0 + h * dw.x.array
+        remainders.append(np.linalg.norm(residual() - R0 - h * JdW))
+    rates = np.log2(np.array(remainders[:-1]) / remainders[1:])
+    assert np.all(rates > 1.8), (remainders, rates)
+    print("rough platens: Taylor remainders", remainders, "rates", rates)
