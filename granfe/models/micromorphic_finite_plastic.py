@@ -16,8 +16,8 @@ The elastic measures in the intermediate configuration, from the reference ones 
     C^e   = Fp^-T C Fp^-1,                 Psi^e = Fp^-T Psi chip^-1,
     Gamma^e_ABC = (Fp^-1_IA Gamma_IJK - Psi^e_AD G^p_DJK) chip^-1_JB Fp^-1_KC,
 
-i.e. ``Gamma^e_ABC = F^e_iA chi^e_iB,C`` with the gradient of ``chi^e = chi chip^-1`` taken
-in the intermediate configuration (``d/dX Fp^-1``). All are invariant under a superposed
+i.e., for ``G^p = grad chi^p``, ``Gamma^e_ABC = F^e_iA chi^e_iB,C`` with the gradient of
+``chi^e = chi chip^-1`` taken in the intermediate configuration (``d/dX Fp^-1``). All are invariant under a superposed
 rigid rotation (F -> R F, chi -> R chi, grad chi -> R grad chi), so is everything below.
 
 Energy. The quadratic energy of :mod:`granfe.models.micromorphic_finite` on the elastic
@@ -62,12 +62,13 @@ plastic strain), so the three levels' flows ``(D^p, D^chi, Lhat)`` have the conj
     slice  t_3+K = Mm_..K, K = 0, 1, 2   (-> m_..K),
 
 each tending to the yield stress of :mod:`granfe.models.micromorphic_drucker_prager` as the
-strains vanish. This is where the model differs from Regueiro's (2010) statement, which
-puts the cones on S, Sigma - S and M of the intermediate configuration with the pressure
-``C^e : S / 3``: here the cones are on the conjugates of the plastic rates, so that (i) the
-small-strain limit is the small-strain model of granfe (yield on ``dW/d eps``, not on
-sigma) and (ii) the dissipation of an associated flow is ``dl (sqrt(J2) + A p) >= 0``
-exactly.
+strains vanish. This is where the model differs from Regueiro's (2010) statement as the
+open Tardigrade ``micromorphic_elasto_plasticity`` implements it (cones on the intermediate
+S, Sigma - S and M, pressure ``C^e : S / 3``, deviator ``S - p C^e^-1``): here the cones
+are on the conjugates of the plastic rates, so that (i) the small-strain limit is granfe's
+small-strain model (yield on ``dW/d eps``, not on sigma) and (ii) a level's dissipation is
+exactly ``dl (sqrt(J2) + B p)``, ``dl k >= 0`` for an associated flow and non-negative on
+the cone below its apex for ``B <= A``.
 
 Yield and flow on every level (``t`` 3 x 3, ``p = tr t / 3``, ``tau = sqrt(J2)``; the
 constants ``(A, B, k0, H)`` of a :class:`~granfe.models.micromorphic_drucker_prager.Cone`)::
