@@ -135,6 +135,7 @@ class ContinuumProblem:
         self.bcs: list[fem.DirichletBC] = []
         self._surface: list[tuple[np.ndarray, str, object]] = []
         self._volume: list[tuple[str, object]] = []
+        self._work: list = []
         self._nodal: list[NodalLoad] = []
         self.weight = None
         self._snes = None
@@ -278,6 +279,13 @@ class ContinuumProblem:
         self._snes = None
         return holder
 
+    def volume_work(self, work) -> None:
+        """A load given by its virtual work per unit volume: ``work(dw)``, a UFL scalar for
+        the test functions ``dw`` (a tuple, one per field), e.g. a pore pressure's
+        ``p div(du)`` or a source in a pressure field's equation."""
+        self._work.append(work)
+        self._snes = None
+
     def traction(self, where: Where, value):
         """Surface traction t [Pa] (vector, or a UFL expression) on a boundary."""
         return self.surface_load(where, "u", value)
@@ -347,6 +355,8 @@ class ContinuumProblem:
                 L += ufl.inner(value, dw[names.index(field)]) * ds(tags)
         for field, value in self._volume:
             L += ufl.inner(value, dw[names.index(field)]) * self.dx
+        for work in self._work:
+            L += work(tuple(dw)) * self.dx
         for load in self._nodal:
             L += load.work(dw)
         return L

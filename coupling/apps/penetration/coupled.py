@@ -93,6 +93,8 @@ from granfe.problem import ContinuumProblem
 __all__ = ["PenetrationParameters", "CoupledPenetration", "DemPenetration", "cone_record",
            "CouplingUnstable", "cone_clump", "penetrator_clump", "tip_height", "cone_parts"]
 
+#: the continuum's generalised-alpha spectral radius at infinite frequency
+RHO_INF = 0.8
 
 
 class CouplingUnstable(RuntimeError):
@@ -486,7 +488,7 @@ class CoupledPenetration:
             scale = self._stress_scale() * prm.element_size_window ** (dim - 1)
             options = {"snes_atol": 1e-6 * scale}
         self.problem = ContinuumProblem(data.mesh, model, facet_tags=data.facet_tags, tag_names=names,
-                                        degree=(1, 1), prefix="cpt_", solver="redundant",
+                                        degree=(1,) * len(model.fields(dim)), prefix="cpt_", solver="redundant",
                                         petsc_options=options)
         self.problem.fix("bottom", "u")
         self.problem.fix("bottom", "phi")
@@ -517,8 +519,9 @@ class CoupledPenetration:
         self._phi_ref = self.interface.prescribed_values()[self.interface.fields[0].prescribed.size:] \
             if getattr(self.interface, "micro", None) is not None else None
         self.dt_fe = prm.substeps * self.sim.dt
+        self._continuum_loads()   # (before the stepper compiles its forms)
         self.stepper = (CentralDifference(self.problem, self.dt_fe) if prm.continuum_integrator == "explicit"
-                        else GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=0.8))
+                        else GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=RHO_INF))
         self.g_prev = self._ghost_motion()
         # the iterated exchange's accelerator (unused by the loose one); the last step's pairs
         # are reused: the next step's map is nearly the same
@@ -866,6 +869,11 @@ class CoupledPenetration:
                 "lateral_stress_change": float(ds[:2].mean()), "lateral_strain": float(d[:2].mean()),
                 "lateral_ratio": float(ds[:2].mean() / ds[2]), "lam": float(lam), "shear_modulus": float(g),
                 "seconds": time.perf_counter() - t0}
+
+    def _continuum_loads(self) -> None:
+        """Loads on the continuum beside the scene's, added before the stepper compiles its
+        forms: none here (a saturated run's pore pressure, :mod:`coupling.apps.penetration.
+        saturated`)."""
 
     def _geostatic_loads(self):
         """3D: gravity on the continuum and, on its side, the traction of the geostatic stress

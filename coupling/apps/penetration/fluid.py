@@ -10,7 +10,10 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-__all__ = ["FluidParameters"]
+__all__ = ["CONTINUA", "FluidParameters"]
+
+#: how the continuum takes the pore pressure (:attr:`FluidParameters.continuum`)
+CONTINUA = ("biot", "drained")
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,13 @@ class FluidParameters:
             scenes/cptu_2d.toml takes 25: at V ~ 1 (3 packings, benchmarks/cptu_cost.py)
             q_c 1.4 % below every DEM step's on average (-11 to +5 % a packing), u2 alike,
             at 2.9x the dry push's CPU against 22x; 50: q_c 11 % below at 2.3x.
+        continuum: how the continuum takes the pore pressure. ``"biot"`` (default): beyond
+            the overlap in total stress, its FE step holding the pressure's increment over
+            the step with its own flow (`granfe.models.undrained_split.UndrainedSplit`), so
+            it stiffens where the fluid cannot drain; in the overlap drained. ``"drained"``:
+            the dry continuum everywhere (its pressure only the fixed-stress estimate from
+            its volume change), kept to compare. "biot" needs compressibility > 0 (the
+            undrained stiffness 1 / (n beta_f)) and the implicit micropolar continuum.
     """
 
     permeability: float = 1e-12
@@ -47,12 +57,18 @@ class FluidParameters:
     density: float = 1000.0
     saturation_time: float = 0.05
     every: int = 1
+    continuum: str = "biot"
 
     def __post_init__(self):
+        if self.continuum not in CONTINUA:
+            raise ValueError(f"continuum must be one of {', '.join(map(repr, CONTINUA))}, got "
+                             f"{self.continuum!r}")
         if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
             raise ValueError(f"every must be an integer >= 1 (DEM steps per fluid step), got "
                              f"{self.every!r}")
         for f in fields(self):
+            if f.name == "continuum":
+                continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
                 raise ValueError(f"{f.name} must be a finite number, got {v!r}")
@@ -62,6 +78,10 @@ class FluidParameters:
         for name in ("compressibility", "density", "saturation_time"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.continuum == "biot" and self.compressibility == 0:
+            raise ValueError("compressibility must be > 0 with continuum = 'biot' (the continuum's "
+                             "undrained stiffness 1 / (n beta_f); an artificial one keeps Skempton's "
+                             "B ~ 1), or continuum = 'drained'")
 
     def consolidation_coefficient(self, modulus: float) -> float:
         """c_v = k M / mu_f [m^2/s] for a skeleton of constrained modulus M [Pa]."""

@@ -5,18 +5,17 @@ The pressure ``p`` (the deviation from hydrostatic) is one P1 field on the conti
 continuous across the overlap by construction, solved every ``fluid.every`` DEM steps by
 backward Euler (`coupling.pore_fluid.DarcyFlow`, seed 003 eq. 5.4-5.5):
 
-    (n beta_f + (1 - w) / K) dp/dt + div v - div((k / mu_f) grad p) = 0,
+    (n beta_f + (1 - b)(1 - w) / K) dp/dt + div v - div((k / mu_f) grad p) = 0,
 
     v = w v_grains + (1 - w) v_FE,    n = w n_grains + (1 - w) n_0,
 
 with ``w`` the grains' weight on the mesh's nodes: 1 inside the window down to the
 coupling's prescribed nodes (a handshake inside its edge), falling linearly to 0 where a
 node's support would reach past the grains (an element inside the ghost band's outer edge),
-0 in the continuum. Inside, the source is the grains' volumetric change (their volume-
-weighted mean velocity by the FE basis at their centroids, the penetrator's solid counted
-as a grain moving at its velocity) and the grains feel the seepage force ``-grad p`` by
-their weight w (in the overlap the continuum would carry the rest; its mechanics are
-drained, so that part is dropped).
+0 in the continuum; ``b`` = 1 on the nodes where w = 0 (the continuum alone), 0 in the
+overlap. Inside, the source is the grains' volumetric change (their volume-weighted mean
+velocity by the FE basis at their centroids, the penetrator's solid counted as a grain
+moving at its velocity) and the grains feel the seepage force ``-grad p`` by their weight w.
 Between fluid steps that force would lag the grains: with a fluid step every DEM step the
 implicit drag of `dem.drag.GroupDrag` holds the lag off; with one every few DEM steps
 (cheaper) every DEM step between adds the last step's response to the grains'
@@ -26,14 +25,23 @@ back-substitution with the step's factors). On one rank the DEM applies that res
 itself in its fused step loop (`dem.response.LinearResponse` from
 :meth:`ChamberFlow.interval_response`) and the fluid steps run between DEM steps
 (`dem.Simulation.step`'s ``pause``); on several, or under an exchange's hook, a hook
-applies it (the Python step loop). Outside, the continuum is *drained* as far as
-its mechanics go (it is the dry micropolar model: it does not feel p), and its volumetric
-strain rate ``div v_FE`` is the source with the skeleton's compressibility ``1 / K`` (K its
-plane-strain bulk modulus) as storage: the pressure there is the fixed-stress estimate of a
-Biot continuum whose total mean stress the dry run gives (undrained and steady:
-``p = K eps_v``, i.e. p = the change of the mean total stress; drained: p -> 0), and it
-diffuses with Rendulic's ``c = k K / mu_f``. The continuum's mechanics are not saturated
-(no u-p coupling in the FE step): a model limit stated, not hidden.
+applies it (the Python step loop).
+
+The continuum (``fluid.continuum = "biot"``, the default) is a Biot continuum in total
+stress beyond the overlap: its FE step is `granfe.models.undrained_split.UndrainedSplit`
+(the skeleton, and the pressure's increment over the step with the continuum's own flow,
+from the last fluid step's pressure; the skeleton pushed by ``-b grad(p)``), and the fluid
+steps after it take the continuum's displacement change over the step as its source ``v_FE``.
+Undrained it deforms nearly isochorically, drained as the dry continuum
+(tests/coupling/test_cptu.py). In the overlap (0 < w < 1, b = 0) its mechanics stay drained:
+the grains take the seepage force by w, the continuum's share is dropped, and its volume
+change enters with the fixed-stress storage ``(1 - w) / K`` (K its plane-strain bulk
+modulus). With the Biot continuum there too (b = 1 - w) the coupled chamber blew up
+undrained (V = 32, the 2D CPTu scene): the continuum's undrained resistance to the grains'
+own volume changes at the prescribed nodes came back through the ghosts.
+``fluid.continuum = "drained"``: the dry continuum everywhere, its volume change the source
+with storage ``(1 - w) / K`` (the fixed-stress estimate of a Biot continuum whose total mean
+stress the dry run gives: undrained ``p = K eps_v``), kept to compare.
 
 The penetrator is solid to the fluid: points filling its section (spacing half a grain
 radius) carry its area at its velocity into the solid fraction and the mean velocity,
@@ -85,7 +93,7 @@ from dolfinx import default_scalar_type, fem
 from dolfinx.fem.petsc import assemble_matrix, assemble_vector
 from scipy import sparse
 
-from coupling.apps.penetration.coupled import CoupledPenetration
+from coupling.apps.penetration.coupled import RHO_INF, CoupledPenetration
 from coupling.apps.penetration.fluid import FluidParameters
 from coupling.apps.penetration.parameters import VERTICAL
 from coupling.apps.penetration.penetrators import tip_height
@@ -95,6 +103,8 @@ from dem.drag import group_means
 from dem.ldl import LDL
 from dem.response import LinearResponse
 from dem.state import FREE
+from granfe.dynamics import AlphaParameters
+from granfe.models.undrained_split import UndrainedSplit
 
 __all__ = ["ChamberFlow", "SaturatedPenetration", "FluidParameters"]
 
@@ -171,6 +181,14 @@ class ChamberFlow(DarcyFlow):
         self.K = bulk_modulus_2d(cpt.material_fe)
         self.M = constrained_modulus_2d(cpt.material_fe)
         self.skeleton_storage = (1.0 - self.weight) / self.K
+        #: continuum = "biot": 1 on the nodes where the continuum alone is the skeleton (w = 0),
+        #: 0 in the overlap; the continuum is Biot's there, its own step answering its volume
+        #: change, and stays drained in the overlap (the fixed-stress storage kept there)
+        self.biot = None
+        if fluid.continuum == "biot":
+            self.biot = fem.Function(self.Vn, name="biot_continuum")
+            self.biot.x.array[:] = self.weight.x.array == 0.0
+            self.skeleton_storage = (1.0 - self.weight) * (1.0 - self.biot) / self.K
         self._cone = _Tracked(domain, self.Vn.ufl_element(), self._maps, self._tree)
         if not np.array_equal(self._cone.space.V.dofmap.list, self.Vn.dofmap.list):
             raise RuntimeError("the penetrator's space does not number the grains' dofs alike")
@@ -324,7 +342,9 @@ class ChamberFlow(DarcyFlow):
             # K p as the step's form less its storage: the same quadrature as the step's
             # (UFL takes one degree for the whole form; K's own estimate is lower)
             a, _ = self._forms()
-            storage = self._storage * self.porosity + self._inv_dt * self.skeleton_storage
+            storage = self._storage * self.porosity
+            if self.skeleton_storage is not None:
+                storage = storage + self._inv_dt * self.skeleton_storage
             self._flow_form = fem.form(ufl.action(a, self.p) - storage * self.p
                                        * ufl.TestFunction(self.Vp) * ufl.dx)
         vec = assemble_vector(self._flow_form)        # K p_s, the last pressure's flow
@@ -440,8 +460,8 @@ class ChamberFlow(DarcyFlow):
     def _seepage_per_volume(self) -> fem.Function:
         """The grains' share of each dof's seepage force per grain volume, weighted by w: in
         the overlap the grains carry the skeleton by w, the continuum by 1 - w (its share is
-        dropped: its mechanics are drained), and outside the window a grain that strays there
-        takes none (it took the whole node's, the continuum's, before)."""
+        dropped: its mechanics are drained there), and outside the window a grain that strays
+        there takes none (it took the whole node's, the continuum's, before)."""
         g = super()._seepage_per_volume()
         g.x.array.reshape(-1, 2)[:] *= self.weight.x.array[:, None]
         return g
@@ -600,20 +620,86 @@ class SaturatedPenetration(CoupledPenetration):
         if prm.interface != "loose":
             raise ValueError(f"interface = {prm.interface!r}: a saturated penetration exchanges "
                              "loosely so far (interface = 'loose')")
-        super().__init__(prm, comm, log=log, checkpoint=checkpoint)
         self.fluid = fluid
+        self.pore_pressure = None   # the continuum's copy of p (continuum = "biot")
+        if checkpoint is not None:   # (before the base reads a continuum of other fields)
+            self._fluid_file(Path(checkpoint), comm)
+        super().__init__(prm, comm, log=log, checkpoint=checkpoint)
         t0 = time.perf_counter()
         self.flow = ChamberFlow(self, fluid)
+        if self.pore_pressure is not None:
+            flow, model = self.flow, self.problem.model
+            for V in (flow.Vp, flow.Vn, model.share.function_space):
+                if not np.array_equal(V.dofmap.list, self.pore_pressure.function_space.dofmap.list):
+                    raise RuntimeError("the continuum's pore pressure space does not number the fluid's dofs alike")
+            model.share.x.array[:] = flow.biot.x.array
+            # the continuum's source: its displacement's change over its last step (the
+            # volume its pressure increment answered), not the alpha-method's velocity
+            self._continuum_rate = fem.Function(self.problem.V)
+            flow._fe_u_velocity = self._continuum_rate.sub(0)
+            self._w_step.x.array[:] = self.problem.w.x.array
         self.fluid_time = 0.0
         self._interval_force = None   # (free rows, force) of the hook's last interval step
         if checkpoint is None:
             self._saturate()
         else:
             self._restore_fluid(Path(checkpoint))
+        if self.pore_pressure is not None:   # the continuum's n beta_f (n0: the settled grains')
+            self.problem.model.storage.value = self.flow.n0 * fluid.compressibility
         what = "saturated" if checkpoint is None else "fluid restored"
         self.log(f"{what} in {time.perf_counter() - t0:.1f} s: k = {fluid.permeability:.3g} m^2, "
                  f"c_v = {self.consolidation_coefficient():.3g} m^2/s, V = v d / c_v = "
                  f"{self.normalised_velocity():.3g}, window porosity {self.flow.n0:.3f}")
+
+    def _continuum_model(self):
+        """Continuum = "biot": the dry run's model in total stress, with the pore pressure's
+        increment over an FE step as a field (`granfe.models.undrained_split.UndrainedSplit`:
+        the FE step holds the fluid's mass, the fluid steps after it drain it)."""
+        model = super()._continuum_model()
+        if self.fluid.continuum != "biot":
+            return model
+        if not model.linear:
+            raise ValueError(f"fluid.continuum = 'biot' takes an elastic continuum so far, got "
+                             f"coupling.continuum = {self.prm.continuum!r} (or fluid.continuum = 'drained')")
+        return UndrainedSplit(model, storage=0.5 * self.fluid.compressibility,   # (n0's, once measured)
+                              mobility=self.fluid.permeability / self.fluid.viscosity)
+
+    def _continuum_loads(self) -> None:
+        """Continuum = "biot": the loads of the undrained split's FE step: the fluid's last
+        pressure p_f on the skeleton's share, ``int s p_f div(du) dx``, and the fluid's mass
+        held from the step's start, ``-int s div(u_n) dp dx``; the increment is 0 where the
+        fluid drains (the surface)."""
+        if self.fluid.continuum != "biot":
+            return
+        problem = self.problem
+        if self.prm.continuum_integrator == "explicit":
+            raise ValueError("fluid.continuum = 'biot' needs the implicit continuum "
+                             "(coupling.continuum_integrator = 'implicit')")
+        V = fem.functionspace(problem.domain, ("Lagrange", 1))
+        self.pore_pressure = fem.Function(V, name="pore_pressure")   # p_f (the last fluid step's)
+        self._w_step = fem.Function(problem.V)                       # the FE step's start
+        model = problem.model
+        s, p_f, u_n = model.share, self.pore_pressure, problem.split(self._w_step)[0]
+        problem.volume_work(lambda dw: s * p_f * ufl.div(dw[0]) - s * ufl.div(u_n) * dw[-1]
+                            + model.step * model.mobility * ufl.inner(ufl.grad(p_f), ufl.grad(dw[-1])))
+        # (the alpha-method's forces are (1 - alpha_f) dt into the step: the flow's time there)
+        model.step.value = (1.0 - AlphaParameters(RHO_INF).alpha_f) * self.dt_fe
+        problem.fix("top", "p")
+
+    def _pressure_to_continuum(self) -> None:
+        if self.pore_pressure is not None:
+            self.pore_pressure.x.array[:] = self.flow.p.x.array
+
+    def _continuum_stepped(self) -> None:
+        """After an FE step (before the next sub-cycle's fluid steps): the continuum's
+        displacement rate over it (the fluid's source over the sub-cycle), and the next FE
+        step's start."""
+        if self.pore_pressure is None:
+            return
+        # (the stepper's predictor is in w already: the last step's end is its w_old)
+        w, w_step = self.stepper.w_old.x.array, self._w_step.x.array
+        self._continuum_rate.x.array[:] = (w - w_step) / self.dt_fe
+        w_step[:] = w
 
     def consolidation_coefficient(self) -> float:
         """c_v = k M / mu_f [m^2/s], M the continuum's constrained modulus (the packing's)."""
@@ -662,8 +748,11 @@ class SaturatedPenetration(CoupledPenetration):
         checkpoint hold and the next fluid step takes out (:meth:`_withdraw`)."""
         comm = self.comm
         name = f"fluid_rank{comm.rank}_of{comm.size}.npz"
+        last = {}
+        if self.pore_pressure is not None:   # (the continuum's state its next rate is from)
+            last = {"continuum_w_step": self._w_step.x.array}
         np.savez(tmp / name, **self.flow.state_dict(), fluid_time=self.fluid_time,
-                 withdraw=self._pending_interval_force())
+                 withdraw=self._pending_interval_force(), **last)
         return [name]
 
     def _pending_interval_force(self) -> np.ndarray:
@@ -678,20 +767,34 @@ class SaturatedPenetration(CoupledPenetration):
             out[free] = f[free]
         return out
 
+    @staticmethod
+    def _fluid_file(directory: Path, comm) -> Path:
+        """This rank's fluid file of the checkpoint in ``directory`` (FileNotFoundError
+        naming a dry run's)."""
+        path = directory / f"fluid_rank{comm.rank}_of{comm.size}.npz"
+        if not path.is_file():
+            raise FileNotFoundError(f"the checkpoint in {directory} has no pore fluid of rank "
+                                    f"{comm.rank} (no {path.name}): written by a dry run?")
+        return path
+
     def _restore_fluid(self, directory: Path) -> None:
         """The fluid's state from a checkpoint (the grains, the continuum and the history
         were read by the base class): the push continues as the run it was written by."""
         comm = self.comm
-        try:
-            d = dict(np.load(directory / f"fluid_rank{comm.rank}_of{comm.size}.npz"))
-        except OSError as err:
-            raise FileNotFoundError(f"the checkpoint in {directory} has no pore fluid of rank "
-                                    f"{comm.rank} ({err}): written by a dry run?") from None
+        d = dict(np.load(self._fluid_file(directory, comm)))
         missing = [k for k in ("p", "t", "n0", "packed", "withdraw", "fluid_time") if k not in d]
         if missing:
             raise FileNotFoundError(f"the checkpoint in {directory} is not a saturated "
                                     f"penetration's (no fluid {', '.join(missing)})")
         self.flow.load_state(d)
+        self._pressure_to_continuum()
+        if self.pore_pressure is not None:
+            if "continuum_w_step" not in d:
+                raise ValueError(f"the checkpoint in {directory} is of a drained continuum "
+                                 "(fluid.continuum = 'drained'); this run's is 'biot'")
+            if d["continuum_w_step"].shape != self._w_step.x.array.shape:
+                raise ValueError("checkpoint field fluid continuum_w_step does not fit this mesh")
+            self._w_step.x.array[:] = d["continuum_w_step"]
         self.fluid_time = float(d["fluid_time"])
         pending = d["withdraw"]
         if pending.shape != (self.sim.p.n, 3):
@@ -704,6 +807,7 @@ class SaturatedPenetration(CoupledPenetration):
     def _fluid_step(self) -> None:
         t0 = time.perf_counter()
         self.flow.step(self.fluid.every * self.sim.dt)
+        self._pressure_to_continuum()
         self.fluid_time += time.perf_counter() - t0
 
     def _before_sub_cycle(self, hook) -> dict:
@@ -717,6 +821,7 @@ class SaturatedPenetration(CoupledPenetration):
         hook (`ChamberFlow.interval_forces`, collective). The last interval force is taken
         out of the grains' forces before a fluid step (which sets the fluid's own)."""
         self._withdraw()
+        self._continuum_stepped()
         self._fluid_step()
         self._readings = self.flow.readings()
         sim, every = self.sim, self.fluid.every

@@ -177,7 +177,9 @@ class Fluid:
     penetration.saturated`; 2D, loose exchange, checkpoints with the fluid's state): off unless ``enabled``.
     ``permeability`` [m^2] (constant), ``viscosity`` [Pa s], ``compressibility`` [1/Pa],
     ``density`` [kg/m^3], ``saturation_time`` [s] the window takes its buoyancy before the
-    push, ``every``: DEM steps per fluid step (dividing ``coupling.substeps``)."""
+    push, ``every``: DEM steps per fluid step (dividing ``coupling.substeps``),
+    ``continuum``: ``"biot"`` (the continuum in total stress, pushed by the pore pressure) or
+    ``"drained"`` (the dry continuum)."""
 
     enabled: bool = False
     permeability: float = parameter(F, "permeability")
@@ -186,6 +188,7 @@ class Fluid:
     density: float = parameter(F, "density")
     saturation_time: float = parameter(F, "saturation_time")
     every: int = parameter(F, "every")
+    continuum: str = parameter(F, "continuum")
 
 
 @dataclass(frozen=True)
@@ -260,6 +263,11 @@ class PenetrationScene(_Tables):
         if self.coupling.substeps % fluid.every:
             raise SceneError(f"fluid.every = {fluid.every} DEM steps must divide coupling.substeps "
                              f"= {self.coupling.substeps}")
+        prm = self.parameters()
+        if fluid.continuum == "biot" and (prm.continuum_integrator != "implicit" or prm.continuum != "micropolar"):
+            raise SceneError(f"fluid.continuum = 'biot' takes the implicit micropolar continuum so far "
+                             f"(continuum.integrator = {prm.continuum_integrator!r}, continuum.model = "
+                             f"{prm.continuum!r}); or fluid.continuum = 'drained'")
         return fluid
 
     def moving_parameters(self) -> M | None:
