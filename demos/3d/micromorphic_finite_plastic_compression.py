@@ -16,8 +16,8 @@ This demo shows how to:
 - compress it between rough platens that also hold the micro-structure (``u_x = u_y = 0``,
   ``phi = 0`` top and bottom): a non-homogeneous state where the higher-order level
   yields too, and the end restraint raises the mean axial stress,
-- record Newton iterations and the cost of the points (each yielding point ~25 ms with its
-  tangent).
+- record Newton iterations and the cost of the points (each yielding point ~5-10 ms with
+  its tangent).
 
 Coupled moduli (D and five taus nonzero), hardening, non-associated flow. Trilinear u and
 phi, 8 points a cell. Run: ``python demos/3d/micromorphic_finite_plastic_compression.py

@@ -89,13 +89,14 @@ its active-set loop and its decoupled radial return as the predictor): Newton on
 unknowns with a central-difference Jacobian (the residual is a few 3 x 3 products) and
 backtracking. The step's dissipation is reported as ``sum_i t_i(n+1) : D_i``. Measured on
 random states from committed plastic states, strains 1e-3 to 5e-2, coupled moduli, 96 %
-of the levels yielding: 0 failures in 9000 points, 4-7 ms a point.
+of the levels yielding: 0 failures in 9000 points, 4-10 ms a point (a 2-core machine
+under load 2-5; linear systems by :func:`_solve`, LAPACK's threads cost 10-50 ms there).
 
 Consistent tangent: the nominal stresses ``y = [P, Q, R]`` (``P = F S``, ``Q = F T^ref``,
 ``R_iJK = F_iI M_IJK``: the integrands of the residual against ``[grad du, dphi, grad
 dphi]``) as functions of ``x = [grad u, phi, grad phi]`` and the converged unknowns z,
 ``dy/dx = y_x - y_z R_z^-1 R_x`` (R the return's equations; partials by central
-differences; ~25 ms a yielding point). :class:`MicromorphicFiniteDruckerPrager` runs the
+differences; ~3 ms more a yielding point). :class:`MicromorphicFiniteDruckerPrager` runs the
 return and the tangent at the quadrature points of a mesh.
 
 Not here: plane strain (the kernel is 3D: 3 x 3 blocks, 5 levels), plastic spin, an
@@ -204,6 +205,42 @@ def _inv3(a):
         out[:, :] = np.nan
         return out
     return out / det
+
+
+@numba.njit(cache=True)
+def _solve(A, B):
+    """``A^-1 B`` (B: n x m) by Gaussian elimination with partial pivoting, in place of
+    LAPACK: no exception on a singular A (NaN instead), and no BLAS threads (LAPACK's least
+    squares took 10-50 ms on a 44 x 44 system on a loaded 2-core machine, 20 us here)."""
+    n = A.shape[0]
+    a, x = A.copy(), B.copy()
+    for k in range(n):
+        piv = k
+        for r in range(k + 1, n):
+            if abs(a[r, k]) > abs(a[piv, k]):
+                piv = r
+        if a[piv, k] == 0.0 or not np.isfinite(a[piv, k]):
+            x[:, :] = np.nan
+            return x
+        if piv != k:
+            for c in range(n):
+                a[k, c], a[piv, c] = a[piv, c], a[k, c]
+            for c in range(x.shape[1]):
+                x[k, c], x[piv, c] = x[piv, c], x[k, c]
+        for r in range(k + 1, n):
+            f = a[r, k] / a[k, k]
+            if f != 0.0:
+                for c in range(k, n):
+                    a[r, c] -= f * a[k, c]
+                for c in range(x.shape[1]):
+                    x[r, c] -= f * x[k, c]
+    for k in range(n - 1, -1, -1):
+        for c in range(x.shape[1]):
+            v = x[k, c]
+            for j in range(k + 1, n):
+                v -= a[k, j] * x[j, c]
+            x[k, c] = v / a[k, k]
+    return x
 
 
 @numba.njit(cache=True)
@@ -405,7 +442,7 @@ def _newton(z, modes, dims, offsets, C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K,
             J[:, j] = (Rp - Rm) / (2.0 * h)
         if not np.all(np.isfinite(J)):
             return False, z
-        dz = np.linalg.lstsq(J, -R)[0]          # no exception where J is singular
+        dz = _solve(J, -R.reshape(nz, 1))[:, 0]     # NaN (no exception) where J is singular
         alpha, decreased = 1.0, False
         for _half in range(30):
             zt = z + alpha * dz
@@ -651,7 +688,7 @@ def _tangent(x, z, modes, dims, offsets, Fp_n, chip_n, Gp_n, eq_old, K, cones, Q
         Yz[:, j] = (_nominal_at(x, zp, modes, dims, offsets, Fp_n, chip_n, Gp_n, K, Q)
                     - _nominal_at(x, zm, modes, dims, offsets, Fp_n, chip_n, Gp_n, K, Q)) \
             / (2.0 * h)
-    return Yx - Yz @ np.linalg.lstsq(Jz, Rx)[0]
+    return Yx - Yz @ _solve(Jz, Rx)
 
 
 @numba.njit(cache=True)
@@ -817,7 +854,7 @@ class MicromorphicFiniteDruckerPrager(MicromorphicFiniteStrain):
     ``plastic_micro_deformation`` ``chi^p - I`` (3 x 3, zero at the start),
     ``plastic_micro_gradient`` ``G^p`` (3 x 3 x 3), ``equivalent_plastic_strain`` (5),
     ``yielding`` (3: macro, micro, any slice, in the last evaluation), and the cache of the
-    last evaluation ``stress``, ``measures`` (45) and ``tangent`` (45 x 45). Cost: ~25 ms a
+    last evaluation ``stress``, ``measures`` (45) and ``tangent`` (45 x 45). Cost: ~5-10 ms a
     yielding point with its tangent (differences of the return's equations), ~0.1 ms an
     elastic one.
     """
