@@ -536,3 +536,49 @@ def test_rough_platens_residual_has_a_quadratic_taylor_remainder():
     rates = np.log2(np.array(remainders[:-1]) / remainders[1:])
     assert np.all(rates > 1.8), (remainders, rates)
     print("rough platens: Taylor remainders", remainders, "rates", rates)
+
+
+def rough_platen_fields(model, strain, prefix):
+    """Two trilinear hexahedra between rough platens pushed down by ``strain`` in two
+    steps: the fields (u, phi) and the committed equivalent plastic strains."""
+    from mpi4py import MPI
+
+    from dolfinx import mesh
+
+    from granfe.problem import ContinuumProblem
+
+    domain = mesh.create_box(MPI.COMM_SELF, [[0, 0, 0], [1, 1, 1]], [1, 1, 2],
+                             mesh.CellType.hexahedron)
+    p = ContinuumProblem(domain, model, degree=(1, 1), quadrature_degree=2, prefix=prefix)
+    bottom, top = (lambda x: np.isclose(x[2], 0.0)), (lambda x: np.isclose(x[2], 1.0))
+    for where, names in ((bottom, ("u", "phi")), (top, ("u_x", "u_y", "phi"))):
+        for name in names:
+            p.fix(where, name)
+    drive = p.fix(top, "u_z", 0.0)
+    for e in (0.5 * strain, strain):
+        drive.value = -e
+        p.solve()
+    return p.w.x.array.copy(), p.state.owned("equivalent_plastic_strain").reshape(-1, 5)
+
+
+def test_mesh_small_strain_limit_is_the_small_strain_iterative_model():
+    """The same mesh problem (rough platens, coupled moduli; macro, micro and the z slice of
+    the higher-order level yielding at every point) with the finite-strain model and with
+    the small-strain MicromorphicDruckerPragerIterative at strains 1e-5 and 1e-6: fields and
+    equivalent plastic strains differ by O(strain), tenfold less at the smaller strain."""
+    from granfe.models.micromorphic_finite_plastic import MicromorphicFiniteDruckerPrager
+    from granfe.models.micromorphic_iterative import MicromorphicDruckerPragerIterative
+
+    diffs = []
+    for k, size in enumerate((1e-5, 1e-6)):
+        mat = material(c=0.02 * MU * size, friction=20.0, dilatancy=5.0, hardening=0.2 * MU)
+        w_f, eq_f = rough_platen_fields(MicromorphicFiniteDruckerPrager(mat), size,
+                                        f"mmfdp_lim_f{k}_")
+        w_s, eq_s = rough_platen_fields(MicromorphicDruckerPragerIterative(mat), size,
+                                        f"mmfdp_lim_s{k}_")
+        assert np.all(eq_s[:, [0, 1, 4]] > 0)   # macro, micro and the z slice, every point
+        diffs.append((np.abs(w_f - w_s).max() / np.abs(w_s).max(),
+                      np.abs(eq_f - eq_s).max() / np.abs(eq_s).max()))
+    print("mesh small-strain limit (1e-5, 1e-6):", diffs)
+    for a, b in zip(*diffs, strict=True):
+        assert a < 20e-5 and b < 20e-6 and 5 < a / b < 20, diffs
