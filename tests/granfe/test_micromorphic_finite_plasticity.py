@@ -1,8 +1,10 @@
-"""Finite-strain micromorphic Drucker-Prager at material points: the elastic law below the
+"""Finite-strain micromorphic Drucker-Prager. At material points: the elastic law below the
 cones, the reference stresses and the levels' yield stresses as derivatives of the stored
 energy, the small-strain limit (the small-strain return), objectivity, the converged state
-on the cones with non-negative dissipation, and a finite-strain path against an
-independent integration of the rate equations."""
+on the cones with non-negative dissipation, the apex, a finite-strain path against an
+independent integration of the rate equations, the consistent tangent. On a mesh: one
+element in uniaxial compression against the point, the residual's Taylor remainder, and
+the small-strain limit against the small-strain iterative model."""
 
 from dataclasses import replace
 
