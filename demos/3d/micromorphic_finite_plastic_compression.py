@@ -11,7 +11,7 @@ This demo shows how to:
   tangent computed at the quadrature points before every residual,
 - compress a cube between smooth platens (symmetry planes, sides free, phi free: a
   homogeneous state) and check the axial nominal stress and the equivalent plastic strain
-  against the material point by itself (:func:`~granfe.models.micromorphic_finite_plastic.finite_return`
+  against the material point by itself (:func:`~granfe.models.micromorphic_finite_return.finite_return`
   driven in uniaxial stress by scipy's root),
 - compress it between rough platens that also hold the micro-structure (``u_x = u_y = 0``,
   ``phi = 0`` top and bottom): a non-homogeneous state where the higher-order level
@@ -41,12 +41,8 @@ from dolfinx import mesh
 
 from granfe.models.micromorphic import MicromorphicMaterial
 from granfe.models.micromorphic_drucker_prager import Cone, MicromorphicDruckerPragerMaterial
-from granfe.models.micromorphic_finite_plastic import (
-    MicromorphicFiniteDruckerPrager,
-    finite_return,
-    initial_state,
-    kernel_tables,
-)
+from granfe.models.micromorphic_finite_plastic import MicromorphicFiniteDruckerPrager
+from granfe.models.micromorphic_finite_return import finite_return, initial_state, kernel_tables
 from granfe.problem import ContinuumProblem
 
 SHORT = os.environ.get("GRANFE_SHORT") == "1"

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from granfe.models.micromorphic import MicromorphicMaterial
 from granfe.models.micromorphic_drucker_prager import Cone, MicromorphicDruckerPragerMaterial
 from granfe.models.micromorphic_finite import micromorphic_finite_stresses
-from granfe.models.micromorphic_finite_plastic import (
+from granfe.models.micromorphic_finite_return import (
     elastic_energy,
     finite_return,
     initial_state,
