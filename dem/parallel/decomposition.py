@@ -4,6 +4,8 @@ step (the owners' coming state predicted into their copies, one ``Alltoallv``)."
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from numba import njit
 
@@ -137,6 +139,12 @@ class Decomposition:
         return ranks.astype(np.int64)
 
     def _decompose(self, chunk=None, serial=None):
+        """`_decompose_now`, its wall time added to ``timings["decompose"]``."""
+        t0 = time.perf_counter()
+        self._decompose_now(chunk, serial)
+        self.timings["decompose"] += time.perf_counter() - t0
+
+    def _decompose_now(self, chunk=None, serial=None):
         """Collective: new owners, migration with history, halos, a new local run (``chunk``:
         the first, of this rank's rows; ``serial``: the `Simulation` they continue, with
         its forces, history and wall resultants)."""
@@ -347,6 +355,14 @@ class Decomposition:
 
     # ---------------------------------------------------------------- halo exchange
     def _exchange(self, kicks: int) -> bool:
+        """`_exchange_now`, its wall time (waiting for the other ranks included) added to
+        ``timings["exchange"]``."""
+        t0 = time.perf_counter()
+        stale = self._exchange_now(kicks)
+        self.timings["exchange"] += time.perf_counter() - t0
+        return stale
+
+    def _exchange_now(self, kicks: int) -> bool:
         """Collective, once per step: True if the drift after ``kicks`` coming half-kicks
         could carry an owned particle more than halo_skin / 2 from where the halos were
         made (then decompose first); else the owners' x, v, omega after those half-kicks

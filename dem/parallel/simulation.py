@@ -179,6 +179,9 @@ class DistributedSimulation(Decomposition, CollectiveResults):
         (``serial``: the `Simulation` they come from, on every rank)."""
         self.owner = owner if owner is not None else self._bisection
         self.time, self.nsteps, self.decompositions, self.migrated = 0.0, 0, 0, 0
+        #: wall time [s] in the halo exchanges (a wait for the slowest rank included) and
+        #: in the decompositions, since the start (not checkpointed)
+        self.timings = {"exchange": 0.0, "decompose": 0.0}
         # this rank's share of the ledger sums over the local runs before the present one,
         # and the spring energy of the present run's pairs another rank books, at its start
         self._bank = dict.fromkeys(_SUMS, 0.0)
