@@ -660,21 +660,22 @@ class SaturatedPenetration(CoupledPenetration):
             return model
         if not model.linear:
             raise ValueError(f"fluid.continuum = 'biot' takes an elastic continuum so far, got "
-                             f"coupling.continuum = {self.prm.continuum!r} (or fluid.continuum = 'drained')")
+                             f"continuum.model = {self.prm.continuum!r} (or fluid.continuum = 'drained')")
         return UndrainedSplit(model, storage=0.5 * self.fluid.compressibility,   # (n0's, once measured)
                               mobility=self.fluid.permeability / self.fluid.viscosity)
 
     def _continuum_loads(self) -> None:
-        """Continuum = "biot": the loads of the undrained split's FE step: the fluid's last
-        pressure p_f on the skeleton's share, ``int s p_f div(du) dx``, and the fluid's mass
-        held from the step's start, ``-int s div(u_n) dp dx``; the increment is 0 where the
-        fluid drains (the surface)."""
+        """Continuum = "biot": the loads of its FE step (`UndrainedSplit`): the fluid's last
+        pressure p_f on the skeleton's share, ``int s p_f div(du) dx``, the fluid's mass from
+        the step's start, ``-int s div(u_n) dp dx``, and p_f's own flow over the step to the
+        alpha-method's forces, ``int tau kappa grad(p_f) . grad(dp) dx``; the increment is 0
+        where the fluid drains (the surface)."""
         if self.fluid.continuum != "biot":
             return
         problem = self.problem
         if self.prm.continuum_integrator == "explicit":
             raise ValueError("fluid.continuum = 'biot' needs the implicit continuum "
-                             "(coupling.continuum_integrator = 'implicit')")
+                             "(continuum.integrator = 'implicit')")
         V = fem.functionspace(problem.domain, ("Lagrange", 1))
         self.pore_pressure = fem.Function(V, name="pore_pressure")   # p_f (the last fluid step's)
         self._w_step = fem.Function(problem.V)                       # the FE step's start
