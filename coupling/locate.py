@@ -13,6 +13,7 @@ import dolfinx_solver  # noqa: F401  (orders MPI before the dolfinx bindings)
 
 import dolfinx.geometry
 import numpy as np
+from numba import njit
 
 __all__ = ["PointsOutsideMesh", "affine_maps", "cell_tree", "inside_reference", "locate_owned", "owner_ranks",
            "pad_points", "reference_coordinates", "relocate"]
@@ -127,16 +128,72 @@ def _affine(mesh) -> bool:
 
 
 def affine_maps(mesh: dolfinx.mesh.Mesh):
-    """(x_0 (c, gdim), J^-1 (c, tdim, gdim)) of every local cell of an affine simplex mesh
-    (P1 geometry), for :func:`reference_coordinates` and :func:`relocate` on a mesh that
-    does not move (the caller keeps them; they are stale once the geometry changes), or None
-    for other meshes."""
+    """(x_0 (c, gdim), J^-1 (c, tdim, gdim), neighbours (c, tdim + 1)) of every local cell of
+    an affine simplex mesh (P1 geometry), for :func:`reference_coordinates` and
+    :func:`relocate` on a mesh that does not move (the caller keeps them; they are stale
+    once the geometry changes), or None for other meshes. ``neighbours[c, i]``: the owned
+    cell across the facet opposite vertex i of owned cell c (-1: a boundary, or a ghost
+    cell), for :func:`relocate`'s walk."""
     if not _affine(mesh):
         return None
     gdim = mesh.geometry.dim
     v = mesh.geometry.x[mesh.geometry.dofmaps[0], :gdim]   # (c, tdim + 1, gdim)
     J = np.transpose(v[:, 1:, :] - v[:, :1, :], (0, 2, 1))
-    return np.ascontiguousarray(v[:, 0, :]), np.linalg.inv(J)
+    return np.ascontiguousarray(v[:, 0, :]), np.linalg.inv(J), _neighbours(mesh)
+
+
+def _neighbours(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
+    """(c, tdim + 1) int32: the owned cell across the facet opposite vertex i of each owned
+    cell (-1 none), matched by the facets' geometry nodes (P1: one node a vertex)."""
+    nodes = mesh.geometry.dofmaps[0]
+    owned = mesh.topology.index_map(mesh.topology.dim).size_local
+    nodes = nodes[:owned]
+    nv = nodes.shape[1]
+    out = np.full((len(nodes), nv), -1, np.int32)
+    # facet opposite vertex i: the other vertices, sorted: a key shared by its two cells
+    keys = np.concatenate([np.sort(np.delete(nodes, i, axis=1), axis=1) for i in range(nv)])
+    cell = np.tile(np.arange(len(nodes)), nv)
+    local = np.repeat(np.arange(nv), len(nodes))
+    order = np.lexsort(keys.T[::-1])
+    k = keys[order]
+    same = np.flatnonzero(np.all(k[1:] == k[:-1], axis=1))   # (interior facets: pairs)
+    a, b = order[same], order[same + 1]
+    out[cell[a], local[a]] = cell[b]
+    out[cell[b], local[b]] = cell[a]
+    return out
+
+
+@njit(cache=True)
+def _walk(x, cells, x0, jinv, neighbours, tol, max_steps, X, found):
+    """Each point from its cell through the facets it lies beyond (the most negative
+    barycentric coordinate's) until a cell holds it (within tol in reference coordinates):
+    cells (n,) updated in place, X (n, tdim) its reference coordinates there, found (n,)
+    False where the walk met a boundary or ghost cell or ran max_steps."""
+    tdim, gdim = jinv.shape[1], jinv.shape[2]
+    for p in range(x.shape[0]):
+        c = cells[p]
+        found[p] = False
+        for _ in range(max_steps):
+            total = 0.0
+            worst, low = 0, 2.0
+            for i in range(tdim):
+                acc = 0.0
+                for j in range(gdim):
+                    acc += jinv[c, i, j] * (x[p, j] - x0[c, j])
+                X[p, i] = acc
+                total += acc
+                if acc < low:
+                    worst, low = i + 1, acc
+            if 1.0 - total < low:
+                worst, low = 0, 1.0 - total
+            if low >= -tol:
+                found[p] = True
+                break
+            nxt = neighbours[c, worst]
+            if nxt < 0:
+                break
+            c = nxt
+        cells[p] = c
 
 
 def reference_coordinates(mesh: dolfinx.mesh.Mesh, x: np.ndarray, cells: np.ndarray,
@@ -154,7 +211,7 @@ def reference_coordinates(mesh: dolfinx.mesh.Mesh, x: np.ndarray, cells: np.ndar
     if x.shape[0] == 0:
         return X
     if maps is not None:
-        x0, Jinv = maps
+        x0, Jinv = maps[:2]
         return np.einsum("nij,nj->ni", Jinv[cells], x[:, :gdim] - x0[cells])
     if _affine(mesh):
         v = mesh.geometry.x[dofmap[cells], :gdim]  # (n, tdim + 1, gdim), reference vertex order
@@ -182,8 +239,12 @@ def relocate(
     """Cells and reference coordinates of moved points, searching only for those that left.
 
     A point whose reference coordinates in its old cell still lie in the reference cell keeps
-    that cell (cheap: one pull-back per point); the others go through the bounding-box
-    search among this rank's owned cells. Local, not collective.
+    that cell (cheap: one pull-back per point). With ``maps`` the others walk through the
+    facets they lie beyond to the owned cell that holds them (numba, up to 8 cells: a grain
+    or a cone moved by a fraction of an element); those the walk does not place (a boundary,
+    a ghost cell, a longer way) and, without maps, all that left go through the
+    bounding-box search among this rank's owned cells (a point on a facet: the lowest
+    cell index there; the walk keeps the first cell it reaches). Local, not collective.
 
     Args:
         mesh: the FE mesh.
@@ -201,9 +262,17 @@ def relocate(
     cells = np.array(cells, dtype=np.int32)
     if cells.shape != (x.shape[0],):
         raise ValueError(f"cells must have shape ({x.shape[0]},), got {cells.shape}")
-    X = reference_coordinates(mesh, x, cells, maps)
-    left = np.flatnonzero(~inside_reference(mesh.topology.cell_type.name, X, tol=1e-12))
-    changed = np.zeros(x.shape[0], dtype=bool)
+    if maps is not None:   # walk from the old cells through their neighbours (numba)
+        before = cells.copy()
+        X = np.empty((x.shape[0], mesh.topology.dim))
+        found = np.empty(x.shape[0], dtype=bool)
+        _walk(x, cells, maps[0], maps[1], maps[2], 1e-12, 8, X, found)
+        left = np.flatnonzero(~found)
+        cells[left] = before[left]
+    else:
+        X = reference_coordinates(mesh, x, cells, maps)
+        left = np.flatnonzero(~inside_reference(mesh.topology.cell_type.name, X, tol=1e-12))
+        before = cells.copy()
     lost = np.zeros(x.shape[0], dtype=bool)
     if left.size:
         tdim = mesh.topology.dim
@@ -215,10 +284,9 @@ def relocate(
             links = colliding.links(k)
             links = links[links < n_owned]
             if links.size:
-                changed[i] = links.min() != cells[i]
                 cells[i] = links.min()
             else:
                 lost[i] = True
         found = left[~lost[left]]
         X[found] = reference_coordinates(mesh, x[found], cells[found], maps)
-    return cells, X, changed, lost
+    return cells, X, (cells != before) & ~lost, lost

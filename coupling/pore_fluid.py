@@ -457,13 +457,17 @@ class DarcyFlow:
                                           petsc_options_prefix=f"granfe_darcy_{id(self)}_",
                                           petsc_options=self._petsc)
             self._residual = self._residual_form()
-        self._problem.solve()
-        check_ksp_converged(self._problem.solver, "pore fluid")
+        self._linear_solve()
         self.p.x.scatter_forward()
         if dt is not None:
             self.t += dt
         self._dt = None if steady else dt
         return self.p
+
+    def _linear_solve(self) -> None:
+        """The step's system assembled and solved into :attr:`p` (its owned dofs)."""
+        self._problem.solve()
+        check_ksp_converged(self._problem.solver, "pore fluid")
 
     def inflow(self, where: Where) -> float:
         """Fluid volume rate entering through a boundary in the last solve [m^3/s; m^2/s in

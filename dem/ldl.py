@@ -16,7 +16,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 from numba import njit
-from scipy.sparse.linalg import splu, spsolve_triangular
+from scipy.sparse.linalg import splu
+
+from dem.response import _lu_solve
 
 __all__ = ["LDL"]
 
@@ -167,21 +169,24 @@ class LDL:
             raise ValueError(f"LDL.factor: pivot {k} is {self.d[k]!r}: A is not symmetric "
                              f"positive definite")
         _transpose(n, self._lp, self._li, self._lx, self._rp, self._ri, self._rx, self._fill)
+        self._kernel = None
         return self
 
     def kernel_arrays(self) -> tuple:
         """(L's strict lower part as CSR (ptr, ind, val), U's strict upper part as CSR, the
         inverse of U's diagonal, perm_r, perm_c): ``Pr A Pc = L U``, U = D L^T, whose row
-        i is L's column i times d_i."""
-        u_val = self._lx * np.repeat(self.d, np.diff(self._lp))
-        return (self._rp, self._ri, self._rx, self._lp, self._li.astype(np.int32), u_val,
-                1.0 / self.d, self.perm_r, self.perm_c)
+        i is L's column i times d_i (made once a factorisation)."""
+        if self._kernel is None:
+            u_val = self._lx * np.repeat(self.d, np.diff(self._lp))
+            self._kernel = (self._rp, self._ri, self._rx, self._lp, self._li.astype(np.int32), u_val,
+                            1.0 / self.d, self.perm_r, self.perm_c)
+        return self._kernel
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """A^-1 b (for checks; the response kernel runs its own substitutions)."""
-        n = self.shape[0]
-        L = sp.csc_matrix((self._lx, self._li, self._lp), shape=self.shape) + sp.identity(n)
-        y = spsolve_triangular(L.tocsr(), np.asarray(b, float)[self.perm], lower=True,
-                               unit_diagonal=True)
-        z = spsolve_triangular((sp.diags(self.d) @ L.T).tocsr(), y, lower=False)
-        return z[self.pinv]
+        """A^-1 b (n,): the response kernel's substitutions (numba)."""
+        b = np.ascontiguousarray(b, dtype=float)
+        if b.shape != (self.shape[0],):
+            raise ValueError(f"LDL.solve: b must be ({self.shape[0]},), got {b.shape}")
+        y = np.empty_like(b)
+        _lu_solve(b, *self.kernel_arrays(), y, np.empty_like(b))
+        return y

@@ -347,7 +347,8 @@ class _AffineStep:
     form twice per step (the SNES evaluates it at the start and again to test convergence).
 
     M, K and J are re-assembled (and J refactorised) when a constant of J (dt, moduli,
-    density) or the list of Dirichlet conditions changes; L when a constant in it changes,
+    density), a value of the model's fixed fields (`ContinuumModel.fixed_fields`) or the
+    list of Dirichlet conditions changes; L when a constant in it changes,
     and at every solve if it holds coefficients (functions that may change silently).
     """
 
@@ -367,6 +368,7 @@ class _AffineStep:
         self._l_constants = [] if self._l_ufl is None else list(self._l_ufl.constants())
         self._l_varies = self._l_ufl is not None and len(self._l_ufl.coefficients()) > 0
         self._matrix_key = self._l_key = None
+        self._watched = [f for f in model.fixed_fields() if f in set(k_ufl.coefficients()) | set(m_ufl.coefficients())]
         self.M = self.K = self.L = None
         imap = V.dofmap.index_map
         self.n_owned = imap.size_local * V.dofmap.index_map_bs
@@ -386,8 +388,10 @@ class _AffineStep:
         if not problem.model.linear or problem.state:
             return None
         J = expand_derivatives(ufl.derivative(F, w, ufl.TrialFunction(problem.V)))
-        # the partition weight is fixed once set (granfe.problem.ContinuumProblem.set_weight)
+        # the partition weight is fixed once set (granfe.problem.ContinuumProblem.set_weight);
+        # the model's fixed fields are watched (_AffineStep.solve)
         fixed = set() if problem.weight is None else set(extract_coefficients(ufl.as_ufl(problem.weight)))
+        fixed |= set(problem.model.fixed_fields())
         if set(J.coefficients()) - fixed:   # J depends on w (or on other functions)
             return None
         if L != 0 and w in L.coefficients():
@@ -433,7 +437,8 @@ class _AffineStep:
         """Solve the step for ``problem.w``; returns the KSP (to check its reason)."""
         problem, st = self.problem, self.stepper
         bcs = list(problem.bcs)
-        key = (_values(self._matrix_constants), tuple(id(bc) for bc in bcs))
+        key = (_values(self._matrix_constants), tuple(id(bc) for bc in bcs),
+               tuple(f.x.array.tobytes() for f in self._watched))
         if key != self._matrix_key or any(a is not b for a, b in zip(bcs, self._bcs, strict=False)):
             self._assemble_matrices(bcs)
             self._matrix_key, self._bcs = key, bcs

@@ -68,6 +68,9 @@ parser.add_argument("--k-undrained", type=float, default=3e-13 if SHORT else 9e-
 parser.add_argument("--seed", type=int, default=None, help="the packing's seed (default: the scene's)")
 parser.add_argument("--every", type=int, default=None,
                     help="DEM steps per fluid step (default: the scene's fluid.every)")
+parser.add_argument("--response-every", type=int, default=None,
+                    help="DEM steps per application of the interval's forces (default: the scene's "
+                         "fluid.response_every)")
 parser.add_argument("--continuum", choices=["biot", "drained"], default=None,
                     help="how the continuum takes the pore pressure (default: the scene's fluid.continuum)")
 parser.add_argument("--runs", nargs="+", default=None,
@@ -87,7 +90,8 @@ def log(msg):
 # undrained (V = 51) u2 read -1.4 kPa against 2.2 with the fluid every DEM step, at 10 3.5)
 SMALL = {"chamber": {"width": 0.16, "depth": 0.12, "element_size_window": 0.008, "element_size_far": 0.03},
          "grains": {"settle_time": 0.15}, "window": {"half_width": 0.025, "depth": 0.045, "handshake": 1.0},
-         "penetrator": {"radius": 0.0045}, "coupling": {"dt_factor": 4.0}, "fluid": {"every": 10}}
+         "penetrator": {"radius": 0.0045}, "coupling": {"dt_factor": 4.0},
+         "fluid": {"every": 10, "response_every": 1}}   # (at the 4x step dt omega ~ 0.2: every step)
 overrides = SMALL if SHORT else {}
 if args.seed is not None:
     overrides = {**overrides, "grains": {**overrides.get("grains", {}), "seed": args.seed}}
@@ -96,6 +100,8 @@ prm0 = replace(scene.parameters(), depth=args.depth)
 fluid0 = scene.fluid_parameters()
 if args.every is not None:
     fluid0 = replace(fluid0, every=args.every)
+if args.response_every is not None:
+    fluid0 = replace(fluid0, response_every=args.response_every)
 if args.continuum is not None:
     fluid0 = replace(fluid0, continuum=args.continuum)
 runs = {"dry": (None, args.fast),

@@ -81,6 +81,13 @@ class ContinuumModel:
     def dimensions(self) -> tuple[int, ...]:
         return (2, 3)
 
+    def fixed_fields(self) -> tuple:
+        """Functions in the model's forms that a run sets between steps only rarely (e.g. a
+        mask set once): a linear model's time step may then still be factorised once, the
+        factors renewed when their values change (:class:`granfe.dynamics.GeneralizedAlpha`).
+        None by default."""
+        return ()
+
     def update(self, material) -> None:
         """Change the material in place (``fem.Constant`` values; no recompilation)."""
         if not isinstance(material, self.material_type):

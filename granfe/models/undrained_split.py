@@ -89,6 +89,9 @@ class UndrainedSplit(ContinuumModel):
     def dimensions(self) -> tuple[int, ...]:
         return self.skeleton.dimensions()
 
+    def fixed_fields(self) -> tuple:
+        return (self.share,)   # (set once by a coupling: the step factorised once)
+
     def update(self, material) -> None:
         self.skeleton.update(material)
         self.material = material

@@ -63,6 +63,9 @@ def quiet(message):
                                         ({"permeability": "high"}, "fluid.permeability"),
                                         ({"every": 0}, "fluid.every must be an integer >= 1"),
                                         ({"every": 7}, "fluid.every = 7 DEM steps must divide coupling.substeps"),
+                                        ({"response_every": 0}, "fluid.response_every must be an integer >= 1"),
+                                        ({"response_every": 3},
+                                         "fluid.response_every = 3 must divide fluid.every = 10"),
                                         ({"continuum": "undrained"},
                                          "fluid.continuum must be one of 'biot', 'drained'")])
 def test_fluid_table_names_the_bad_key(bad, named):
@@ -374,13 +377,16 @@ def test_interval_forces_ranks_equal_serial():
     np.testing.assert_allclose(ranks, serial, rtol=0, atol=1e-8 * np.abs(serial).max())
 
 
-def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch):
+@pytest.mark.parametrize("stride", [1, 2])
+def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch, stride):
     """On one rank the DEM steps between fluid steps take the interval's forces as the DEM's
     linear response (`ChamberFlow.interval_response`, in the fused step loop): at the k-th
     DEM step after a fluid step it adds ``interval_forces(k dt)`` to round-off (SuperLU's
     factors for PETSc's: 1e-9 measured to ~1e-13), and a push through it equals a push
     through the interval hook (the Python step loop; the path of 2 ranks) to round-off of
-    the same, grown by the chaotic packing over 3 FE steps (1e-6 of q_c)."""
+    the same, grown by the chaotic packing over 3 FE steps (1e-6 of q_c), also with the
+    forces' impulse once in 2 DEM steps (``fluid.response_every``, the stride; this small
+    window's step takes no more: s dt omega 0.39)."""
     s = scene({"saturation_time": 0.0, "every": 10})
     cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
     flow, sim = cpt.flow, cpt.sim
@@ -398,7 +404,7 @@ def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch):
     response.withdraw(sim)
 
     def push(hooked):
-        s = scene({"every": 10})
+        s = scene({"every": 10, "response_every": stride})
         cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
         if hooked:   # an exchange hook (one that does nothing) takes the Python loop
             plain = cpt._before_sub_cycle
@@ -415,18 +421,50 @@ def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch):
     np.testing.assert_allclose(fused, hooked, rtol=1e-6)
 
 
+def test_the_stride_fits_the_fluids_stiffest_mode(monkeypatch):
+    """``fluid.response_every`` is the most: the run takes the largest divisor s of
+    ``fluid.every`` up to it with s dt omega <= 0.5, omega the interval's stiffest frequency
+    (`ChamberFlow.stiffest`, power iteration: the largest |eigenvalue| of M^-1 G from the
+    dense G built column by column from interval_forces, to 1e-4: 40 iterations reach
+    1.5e-5); this small window's
+    step (omega dt ~ 0.2) takes 2 of 5, and 1 under a lowered limit."""
+    s = scene({"every": 10, "response_every": 5})
+    cpt = SaturatedPenetration(s.parameters(), s.fluid_parameters(), MPI.COMM_WORLD, log=quiet)
+    cpt.advance()
+    flow, sim = cpt.flow, cpt.sim
+    omega = flow.stiffest()
+    assert cpt.stride == 2 and 2 * omega * sim.dt <= 0.5 < 5 * omega * sim.dt
+    free = np.flatnonzero(sim.p.kind[:cpt.n_grains] == FREE)
+    x, h = sim.p.x.copy(), 1e-9      # (the forces are linear in x: any step)
+    sim.p.x[free, :2] = flow._x_last[free, :2]
+    base = flow.interval_forces(sim.dt)[free, :2].ravel()
+    G = np.empty((2 * len(free), 2 * len(free)))
+    for k in range(2 * len(free)):
+        sim.p.x[free[k // 2], k % 2] += h
+        G[:, k] = -(flow.interval_forces(sim.dt)[free, :2].ravel() - base) / h
+        sim.p.x[free[k // 2], k % 2] = flow._x_last[free[k // 2], k % 2]
+    sim.p.x[:] = x
+    lam = np.abs(np.linalg.eigvals(G / np.repeat(sim.p.mass[free], 2)[:, None])).max()
+    assert omega == pytest.approx(np.sqrt(lam), rel=1e-4)
+    lowered = SaturatedPenetration(s.parameters(), s.fluid_parameters(), MPI.COMM_WORLD, log=quiet)
+    monkeypatch.setattr(SaturatedPenetration, "STRIDE_LIMIT", 1e-4)
+    lowered.advance()
+    assert lowered.stride == 1
+
+
 @pytest.mark.mpi
-@pytest.mark.parametrize("every", [1, 10])
-def test_a_restart_repeats_the_saturated_run(tmp_path_factory, every):
+@pytest.mark.parametrize("every, stride", [(1, 1), (10, 1), (10, 2)])
+def test_a_restart_repeats_the_saturated_run(tmp_path_factory, every, stride):
     """A saturated push restarted from a checkpoint repeats the straight run to the bit (q_c,
     u2, the pressure and the grains), with a fluid step every DEM step (the implicit drag)
-    and every 10 (the DEM's linear response on one rank, the interval hook on two): the
+    and every 10 (the DEM's linear response on one rank, the interval hook on two; its
+    impulse every DEM step and once in 2): the
     checkpoint holds the pressure, the fluid's reference positions, where its points were
     located, the DEM's external forces and the interval force in the grains' forces. A dry
     run's checkpoint is refused by name."""
     comm = MPI.COMM_WORLD
     where = comm.bcast(str(tmp_path_factory.mktemp("cptu_ck")) if comm.rank == 0 else None, root=0)
-    s = scene({"every": every})
+    s = scene({"every": every, "response_every": stride})
     prm, fluid = s.parameters(), s.fluid_parameters()
     cpt = SaturatedPenetration(prm, fluid, comm, log=quiet)
     cpt.run(steps=2)

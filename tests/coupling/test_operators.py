@@ -252,6 +252,37 @@ def test_affine_maps_pull_back_as_the_solve(dim):
     assert affine_maps(mesh.create_unit_square(comm, 2, 2, mesh.CellType.quadrilateral)) is None
 
 
+@pytest.mark.mpi
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_walk_finds_the_cells_the_tree_finds(dim):
+    """relocate's walk through the facets (with affine_maps) places moved points in the
+    cells the bounding-box search finds (points off the facets: one cell each), X to
+    round-off, the same points lost (moved out of the mesh), on a refined mesh where points
+    cross up to ~6 elements (longer ways fall back to the search); every rank's own cells
+    (2 ranks: points that enter a ghost cell are lost alike)."""
+    comm = MPI.COMM_WORLD
+    n = 16 if dim == 2 else 6
+    msh = mesh.create_unit_square(comm, n, n) if dim == 2 else mesh.create_unit_cube(comm, n, n, n)
+    maps = affine_maps(msh)
+    owned = msh.topology.index_map(msh.topology.dim).size_local
+    rng = np.random.default_rng(7 + comm.rank)
+    cells = rng.integers(0, owned, 600).astype(np.int32)
+    v = msh.geometry.x[msh.geometry.dofmaps[0][cells]]
+    w = rng.dirichlet(np.ones(dim + 1), len(cells))
+    x = np.einsum("na,nai->ni", w, v)          # one point inside each cell
+    for scale in (0.2 / n, 1.0 / n, 4.0 / n):
+        moved = x + scale * rng.standard_normal(x.shape) * (np.arange(3) < dim)
+        walk, tree = relocate(msh, moved, cells, maps=maps), relocate(msh, moved, cells)
+        assert np.array_equal(walk[3], tree[3])
+        keep = ~walk[3]
+        assert np.array_equal(walk[0][keep], tree[0][keep]) and np.array_equal(walk[2], tree[2])
+        np.testing.assert_allclose(walk[1][keep], tree[1][keep], atol=1e-12)
+        assert walk[2].any()
+    outside = x.copy()
+    outside[:5, 0] += 2.0
+    assert relocate(msh, outside, cells, maps=maps)[3][:5].all()
+
+
 def test_update_refuses_particles_that_left():
     V = mixed_space(MPI.COMM_WORLD)
     pts, _ = my_points(V, all_points(50))

@@ -41,7 +41,18 @@ class FluidParameters:
             forces alone blew up at 5 in the loose window (k = 1e-11, beta_f = 1e-6).
             scenes/cptu_2d.toml takes 25: at V ~ 1 (3 packings, benchmarks/cptu_cost.py)
             q_c 1.4 % below every DEM step's on average (-11 to +5 % a packing), u2 alike,
-            at 2.9x the dry push's CPU against 22x; 50: q_c 11 % below at 2.3x.
+            at 2.9x the dry push's CPU against 22x (2.4x since, 2.1x with response_every
+            5); 50: q_c 11 % below at 2.3x.
+        response_every: with every > 1, the most DEM steps per application of the
+            interval's forces: the impulse of multiple time stepping, s times the middle
+            step's force once per block of s steps (`dem.response.LinearResponse`'s stride;
+            the 2-rank hook likewise). The run takes the largest divisor s of every up to
+            it with ``s dt omega <= 0.5``, omega the interval response's stiffest frequency
+            measured at the push's first fluid step (stable below 2; at 0.5 that mode's
+            period is 1.1 % short). 1: every DEM step. scenes/cptu_2d.toml takes 5: at
+            V ~ 1 omega dt = 0.057, so 5 (push 2.1x the dry one's CPU against 2.4x; q_c over
+            3 packings 4.25 against 4.59 kPa, one packing's scatter ~10 %); undrained
+            omega dt = 0.12, so 1.
         continuum: how the continuum takes the pore pressure. ``"biot"`` (default): beyond
             the overlap in total stress, its FE step holding the pressure's increment over
             the step with its own flow (`granfe.models.undrained_split.UndrainedSplit`), so
@@ -58,6 +69,7 @@ class FluidParameters:
     saturation_time: float = 0.05
     every: int = 1
     continuum: str = "biot"
+    response_every: int = 1
 
     def __post_init__(self):
         if self.continuum not in CONTINUA:
@@ -66,6 +78,13 @@ class FluidParameters:
         if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
             raise ValueError(f"every must be an integer >= 1 (DEM steps per fluid step), got "
                              f"{self.every!r}")
+        if isinstance(self.response_every, bool) or not isinstance(self.response_every, int) \
+                or self.response_every < 1:
+            raise ValueError(f"response_every must be an integer >= 1 (DEM steps per application of "
+                             f"the interval's forces), got {self.response_every!r}")
+        if self.every > 1 and self.every % self.response_every:
+            raise ValueError(f"response_every = {self.response_every} must divide every = {self.every} "
+                             "(DEM steps per fluid step): a block of steps may not straddle a fluid step")
         for f in fields(self):
             if f.name == "continuum":
                 continue

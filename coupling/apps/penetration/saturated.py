@@ -90,7 +90,7 @@ from petsc4py import PETSc
 import numpy as np
 import ufl
 from dolfinx import default_scalar_type, fem
-from dolfinx.fem.petsc import assemble_matrix, assemble_vector
+from dolfinx.fem.petsc import apply_lifting, assemble_matrix, assemble_vector
 from scipy import sparse
 
 from coupling.apps.penetration.coupled import RHO_INF, CoupledPenetration
@@ -211,6 +211,7 @@ class ChamberFlow(DarcyFlow):
         self._cone_sums = (np.zeros_like(w), np.zeros((len(w), gdim)))
         self._source_matrix = None   # int u . grad q dx (Vv -> Vp), for interval_forces
         self._serial = None          # interval_forces' scipy products on one rank
+        self._ldl = None             # the step's factors on one rank (:meth:`_linear_solve`)
         self.response = None         # interval_response's (one rank)
         self._x_last = None   # the grains' positions at the last fluid step
         self._rate = None     # (n, 3) their displacement rate over it [m/s]
@@ -402,7 +403,7 @@ class ChamberFlow(DarcyFlow):
             b.x.array[:] = ops["to_source"] @ moved.ravel() - drain * self._flow_of_last
             for bc in self.bcs:                           # (p = 0 at the drained dofs)
                 bc.set(b.x.array)
-            self._problem.solver.solve(b.x.petsc_vec, dp.x.petsc_vec)   # (its factors reused)
+            dp.x.array[:] = self._ldl.solve(b.x.array)    # (the step's factors)
             out[mine, :gdim] = (ops["to_grains"] @ dp.x.array).reshape(-1, gdim)
             return out
         du = self._work("interval_du", self.Vv)
@@ -425,34 +426,64 @@ class ChamberFlow(DarcyFlow):
             self.domain.comm.Allreduce(MPI.IN_PLACE, out, op=MPI.SUM)
         return out
 
+    def stiffest(self, iterations: int = 40) -> float:
+        """The largest frequency omega = sqrt(|lambda|) [rad/s] of ``M^-1 G`` over the free
+        grains, G = -d interval_forces / d x (the grains' stiffness of the fluid between its
+        steps), by power iteration from a fixed random start about the last fluid step's
+        positions; the grains are left where they were. Collective, the same on every rank
+        (rank 0's)."""
+        p = self.sim.p
+        n = self.particles
+        free = np.flatnonzero(p.kind[:n] == FREE)
+        if not len(free):
+            return 0.0
+        x = p.x.copy()
+        mass = p.mass[free, None]
+        scale = 1e-6 * self.d
+
+        def force(v):
+            p.x[free, :2] = self._x_last[free, :2] + v
+            return self.interval_forces(self.sim.dt)[free, :2]
+
+        try:
+            base = force(0.0)
+            v = np.random.default_rng(0).standard_normal((len(free), 2))
+            lam = 0.0
+            for _ in range(iterations):
+                v *= scale / np.linalg.norm(v)
+                a = -(force(v) - base) / mass
+                lam = float(np.linalg.norm(a) / np.linalg.norm(v))
+                if lam == 0.0:
+                    break
+                v = a
+        finally:
+            p.x[:] = x
+        return self.domain.comm.bcast(float(np.sqrt(lam)), root=0)
+
     def interval_response(self) -> LinearResponse:
         """(one rank) :meth:`interval_forces` of the last fluid step as a
         `dem.response.LinearResponse` (:attr:`response`, updated in place): applied at the
-        k-th DEM step after the fluid step it adds ``interval_forces(k dt)`` (to round-off:
-        the step's matrix refactored by `dem.ldl.LDL`, its pattern analysed once, stands in
-        for PETSc's factors), inside the DEM's step loop, the fused one too (a numba pass of
-        two sparse products, the basis rows and two substitutions; through a Python hook
-        each DEM step cost more than the step itself)."""
+        k-th DEM step after the fluid step it adds ``interval_forces(k dt)`` (to round-off;
+        the step's own `dem.ldl.LDL` factors, :meth:`_linear_solve`'s), inside the DEM's
+        step loop, the fused one too (a numba pass of two sparse products, the basis rows and
+        two substitutions; through a Python hook each DEM step cost more than the step
+        itself), once every ``stride`` steps (:meth:`SaturatedPenetration._stride`)."""
         ops = self._serial
         if ops is None:
             raise RuntimeError("interval_response: one rank only (interval_forces is collective)")
-        A = _scipy(self._problem.A)
         if "kept_source" not in ops:   # (p = 0 at the drained dofs: their rows of A are I)
-            keep = np.ones(A.shape[0])
+            keep = np.ones(self._ldl.shape[0])
             for bc in self.bcs:
                 keep[bc.dof_indices()[0]] = 0.0
             ops["keep"], ops["kept_source"] = keep, (sparse.diags(keep) @ ops["source"]).tocsr()
         drift = ops["keep"] * self._flow_of_last * (self.sim.dt / self._step_dt)
         rows, x_ref = self._mine, self._x_last[self._mine, :2]
-        # (the mesh's operators and the grains' basis rows: fewer entries than their products)
-        ldl = ops.get("ldl")   # (M + dt K is symmetric positive definite, its pattern the mesh's)
-        if ldl is None or not ldl.same_pattern(A):
-            ops["ldl"] = ldl = LDL(A)
-        else:
-            ldl.factor(A)
+        # (the mesh's operators and the grains' basis rows: fewer entries than their products;
+        # the step's own factors, :meth:`_linear_solve`'s)
+        ldl = self._ldl
         args = (rows, x_ref, ops["kept_source"], drift, ldl, ops["force"], ops["basis"])
         if self.response is None:
-            self.response = LinearResponse(*args)
+            self.response = LinearResponse(*args, stride=self.fluid_prm.response_every)
         else:
             self.response.update(*args)
         return self.response
@@ -481,6 +512,33 @@ class ChamberFlow(DarcyFlow):
     def solve(self, dt: float | None = None):
         self._step_dt = dt
         return super().solve(dt)
+
+    def _linear_solve(self) -> None:
+        """On one rank with fluid steps every few DEM steps: the step's system (assembled as
+        dolfinx's LinearProblem does) solved by `dem.ldl.LDL` (M + dt K is symmetric positive
+        definite, the Dirichlet rows identity; its pattern analysed once), the factors the
+        DEM steps between reuse (:meth:`interval_response`, :meth:`interval_forces`): one
+        factorisation a fluid step. Else PETSc's solve (sequential MUMPS on every rank)."""
+        if self.domain.comm.size > 1 or self.fluid_prm.every == 1:
+            return super()._linear_solve()
+        prob = self._problem
+        A, b = prob.A, prob.b
+        A.zeroEntries()
+        assemble_matrix(A, prob.a, bcs=prob.bcs)
+        A.assemble()
+        with b.localForm() as local:
+            local.set(0.0)
+        assemble_vector(b, prob.L)
+        apply_lifting(b, [prob.a], bcs=[prob.bcs])
+        b.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        for bc in prob.bcs:
+            bc.set(b.array_w)
+        S = _scipy(A)
+        if self._ldl is None or not self._ldl.same_pattern(S):
+            self._ldl = LDL(S)
+        else:
+            self._ldl.factor(S)
+        self.p.x.array[:] = self._ldl.solve(b.array_r)     # (one rank: every dof owned)
 
     def apply_forces(self) -> None:
         """The grains' forces and drag (DarcyFlow; the drag about the cell means of the
@@ -640,6 +698,8 @@ class SaturatedPenetration(CoupledPenetration):
             self._w_step.x.array[:] = self.problem.w.x.array
         self.fluid_time = 0.0
         self._interval_force = None   # (free rows, force) of the hook's last interval step
+        #: DEM steps per application of the interval's forces (:meth:`_stride`; None: not yet chosen)
+        self.stride = None
         if checkpoint is None:
             self._saturate()
         else:
@@ -752,6 +812,8 @@ class SaturatedPenetration(CoupledPenetration):
         last = {}
         if self.pore_pressure is not None:   # (the continuum's state its next rate is from)
             last = {"continuum_w_step": self._w_step.x.array}
+        if self.stride is not None:
+            last["stride"] = self.stride
         np.savez(tmp / name, **self.flow.state_dict(), fluid_time=self.fluid_time,
                  withdraw=self._pending_interval_force(), **last)
         return [name]
@@ -797,6 +859,8 @@ class SaturatedPenetration(CoupledPenetration):
                 raise ValueError("checkpoint field fluid continuum_w_step does not fit this mesh")
             self._w_step.x.array[:] = d["continuum_w_step"]
         self.fluid_time = float(d["fluid_time"])
+        if "stride" in d:     # (the run's choice, not one measured at the restart's state)
+            self.stride = int(d["stride"])
         pending = d["withdraw"]
         if pending.shape != (self.sim.p.n, 3):
             raise ValueError(f"checkpoint field fluid withdraw has {pending.shape} rows, the "
@@ -846,12 +910,16 @@ class SaturatedPenetration(CoupledPenetration):
                 self._fluid_step()
                 self._response()
             return {"hook": None, "response": response, "pause_every": every, "pause": pause}
-        since = 0
+        since, stride = 0, self._stride()
 
         def interval_hook():
             nonlocal since
             since += 1
-            self._interval_step(since * sim.dt)
+            # (a stride's blocks as `dem.response.LinearResponse` takes them)
+            if stride == 1 or (since - 1) % stride == (stride - 1) // 2:
+                self._interval_step(since * sim.dt, stride)
+            else:
+                self._interval_force = None
             return bool(hook()) if hook is not None else False
 
         def pause():
@@ -874,15 +942,41 @@ class SaturatedPenetration(CoupledPenetration):
     def _response(self) -> LinearResponse:
         t0 = time.perf_counter()
         response = self.flow.interval_response()
+        response.stride = self._stride()
         self.fluid_time += time.perf_counter() - t0
         return response
 
-    def _interval_step(self, elapsed: float) -> None:
-        """The fluid's force change ``elapsed`` [s] after its last step, added to the free
-        grains' forces of this DEM step (:meth:`ChamberFlow.interval_forces`)."""
+    #: the largest ``s dt omega`` a response stride s may reach (the impulse method is stable
+    #: below 2; at 0.5 the stiffest mode's period is 1.1 % short)
+    STRIDE_LIMIT = 0.5
+
+    def _stride(self) -> int:
+        """The DEM steps per application of the interval's forces: the largest divisor s of
+        ``fluid.every`` up to ``fluid.response_every`` with ``s dt omega`` <= STRIDE_LIMIT,
+        omega the interval's stiffest frequency at the push's first fluid step (power
+        iteration: once a run, kept by checkpoints). Collective the first time."""
+        if self.stride is None:
+            every, most = self.fluid.every, self.fluid.response_every
+            self.stride = 1
+            if most > 1:
+                t0 = time.perf_counter()
+                omega_dt = self.flow.stiffest() * self.sim.dt
+                fits = [s for s in range(1, most + 1) if every % s == 0 and s * omega_dt <= self.STRIDE_LIMIT]
+                self.stride = max(fits, default=1)
+                self.log(f"fluid: the interval's forces once in {self.stride} DEM steps (response_every "
+                         f"{most}; its stiffest mode omega dt = {omega_dt:.3g}, measured in "
+                         f"{time.perf_counter() - t0:.2f} s)")
+        return self.stride
+
+    def _interval_step(self, elapsed: float, weight: int = 1) -> None:
+        """The fluid's force change ``elapsed`` [s] after its last step (times ``weight``: a
+        stride's impulse), added to the free grains' forces of this DEM step
+        (:meth:`ChamberFlow.interval_forces`)."""
         t0 = time.perf_counter()
         sim = self.sim
         f = self.flow.interval_forces(elapsed)
+        if weight != 1:
+            f *= weight
         free = sim.p.kind == FREE
         sim.p.force[free] += f[free]
         sim.forced[free] = 1

@@ -179,7 +179,8 @@ class Fluid:
     ``density`` [kg/m^3], ``saturation_time`` [s] the window takes its buoyancy before the
     push, ``every``: DEM steps per fluid step (dividing ``coupling.substeps``),
     ``continuum``: ``"biot"`` (the continuum in total stress, pushed by the pore pressure) or
-    ``"drained"`` (the dry continuum)."""
+    ``"drained"`` (the dry continuum), ``response_every``: DEM steps per application of the
+    interval's forces (dividing ``every``; their impulse once per block)."""
 
     enabled: bool = False
     permeability: float = parameter(F, "permeability")
@@ -189,6 +190,7 @@ class Fluid:
     saturation_time: float = parameter(F, "saturation_time")
     every: int = parameter(F, "every")
     continuum: str = parameter(F, "continuum")
+    response_every: int = parameter(F, "response_every")
 
 
 @dataclass(frozen=True)
