@@ -124,6 +124,7 @@ from granfe.models.micromorphic_return import (
     _after_failure,
     _invariants,
     _level_stress,
+    _offsets,
     _predict,
     _revise,
     _warm_starts,
@@ -545,12 +546,7 @@ def _point(C, Psi, Gam, Fp_n, chip_n, Gp_n, eq_old, K, cones, has_cone, moduli, 
     Gp_out[:] = Gp_n
     eq_out[:] = eq_old
     for passes in range(1, 31):
-        nz = 0
-        for i in range(5):
-            offsets[i] = nz
-            if modes[i] != 0:
-                nz += dims[i] + 1
-        z = np.zeros(nz)
+        z = np.zeros(_offsets(modes, dims, offsets))
         for i in range(5):
             o, d = offsets[i], dims[i]
             if modes[i] == 1:
@@ -702,12 +698,7 @@ def _all(x, Fp_n, chip_n, Gp_n, eq_n, K, cones, has_cone, moduli, Q, SYM, Fp, ch
         if passes[n] < 0:
             modes[:] = 0
         offsets = np.zeros(5, dtype=np.int64)
-        nz = 0
-        for i in range(5):
-            offsets[i] = nz
-            if modes[i] != 0:
-                nz += dims[i] + 1
-        z = z_all[:nz].copy()
+        z = z_all[:_offsets(modes, dims, offsets)].copy()
         nominal[n] = _nominal_at(x[n], z, modes, dims, offsets, Fp_n[n], chip_n[n], Gp_n[n], K, Q)
         if want_tangent:
             tangent[n] = _tangent(x[n], z, modes, dims, offsets, Fp_n[n], chip_n[n], Gp_n[n],

@@ -245,17 +245,25 @@ def _merit(R, modes, dims, offsets, moduli):
 
 
 @numba.njit(cache=True)
+def _offsets(modes, dims, offsets) -> int:
+    """Each active level's first index among the unknowns (its dims[i] increments, then its
+    multiplier) into ``offsets``; returns their number."""
+    nz = 0
+    for i in range(5):
+        offsets[i] = nz
+        if modes[i] != 0:
+            nz += dims[i] + 1
+    return nz
+
+
+@numba.njit(cache=True)
 def _newton(x, K, xp_old, eq_old, cones, modes, dims, a0, l0, moduli, Q, PROJ, PDEV, VEC_I, SYM,
             scale, tol, max_it):
     """Newton, from the levels' predicted unknowns (a0, l0), on the unknowns of the levels in
     ``modes``, with backtracking on the residual (a full step may jump a cone's deviator
     through zero); (converged, z, offsets, J, Ry, Yz, y, xp)."""
     offsets = np.zeros(5, dtype=np.int64)
-    nz = 0
-    for i in range(5):
-        offsets[i] = nz
-        if modes[i] != 0:
-            nz += dims[i] + 1
+    nz = _offsets(modes, dims, offsets)
     z = np.zeros(nz)
     for i in range(5):
         if modes[i] != 0:

@@ -183,10 +183,13 @@ class ChamberFlow(DarcyFlow):
         self.skeleton_storage = (1.0 - self.weight) / self.K
         #: continuum = "biot": 1 on the nodes where the continuum alone is the skeleton (w = 0),
         #: 0 in the overlap; the continuum is Biot's there, its own step answering its volume
-        #: change, and stays drained in the overlap (the fixed-stress storage kept there)
+        #: change, and stays drained in the overlap (the fixed-stress storage kept there). The
+        #: continuum's own share field (`UndrainedSplit.share`): one mask for both
         self.biot = None
         if fluid.continuum == "biot":
-            self.biot = fem.Function(self.Vn, name="biot_continuum")
+            self.biot = cpt.problem.model.share
+            if not np.array_equal(self.biot.function_space.dofmap.list, self.Vn.dofmap.list):
+                raise RuntimeError("the continuum's share space does not number the fluid's dofs alike")
             self.biot.x.array[:] = self.weight.x.array == 0.0
             self.skeleton_storage = (1.0 - self.weight) * (1.0 - self.biot) / self.K
         self._cone = _Tracked(domain, self.Vn.ufl_element(), self._maps, self._tree)
@@ -686,11 +689,10 @@ class SaturatedPenetration(CoupledPenetration):
         t0 = time.perf_counter()
         self.flow = ChamberFlow(self, fluid)
         if self.pore_pressure is not None:
-            flow, model = self.flow, self.problem.model
-            for V in (flow.Vp, flow.Vn, model.share.function_space):
+            flow = self.flow
+            for V in (flow.Vp, flow.Vn):
                 if not np.array_equal(V.dofmap.list, self.pore_pressure.function_space.dofmap.list):
                     raise RuntimeError("the continuum's pore pressure space does not number the fluid's dofs alike")
-            model.share.x.array[:] = flow.biot.x.array
             # the continuum's source: its displacement's change over its last step (the
             # volume its pressure increment answered), not the alpha-method's velocity
             self._continuum_rate = fem.Function(self.problem.V)
