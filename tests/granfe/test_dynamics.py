@@ -100,9 +100,10 @@ def test_consistent_initial_acceleration():
 
 @pytest.mark.mpi
 def test_affine_step_equals_newton():
-    """The linear step (Jacobian factorised once, residual by matrix products) gives the SNES
-    solve's states to round-off, with Dirichlet values and a load that change every step and
-    a change of dt (re-assembled and refactorised) half way."""
+    """The linear step (Jacobian factorised once, by Cholesky: it is symmetric; residual by
+    matrix products) gives the SNES solve's states (LU, the Jacobian assembled every
+    iteration) to round-off, with Dirichlet values and a load that change every step and a
+    change of dt (re-assembled and refactorised) half way."""
     from dolfinx import fem
 
     states = []
@@ -127,6 +128,8 @@ def test_affine_step_equals_newton():
             load.value = (0.0, -2e4 * (1 + np.cos(0.2 * k)))
             stepper.step()
             history.append(np.concatenate([problem.w.x.array, stepper.v.x.array, stepper.a.x.array]))
+        if affine:
+            assert stepper._affine.factorisation == "cholesky"
         states.append(np.array(history))
     a, b = states
     scale = np.abs(b).max(axis=1, keepdims=True)

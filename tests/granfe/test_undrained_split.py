@@ -116,9 +116,10 @@ def test_a_strip_load_stays_bounded_undrained():
 
 def test_the_step_is_factorised_once_and_follows_its_share():
     """The split's step is linear with a fixed share field (`ContinuumModel.fixed_fields`):
-    the generalized-alpha step solves it with one factorisation (`_AffineStep`) as Newton
-    does (SNES, its Jacobian assembled every iteration) to 1e-10 (measured 1e-14), also
-    after the share changes between steps (the factors renewed)."""
+    the generalized-alpha step solves it with one factorisation (`_AffineStep`; Cholesky:
+    MUMPS's symmetric indefinite LDL^T) as Newton does (SNES, LU, its Jacobian assembled
+    every iteration) to 1e-10 (measured 1e-14), also after the share changes between steps
+    (the factors renewed)."""
     domain = mesh.create_rectangle(MPI.COMM_WORLD, [[0, 0], [0.1, 0.1]], [6, 6])
     runs = []
     for affine in (True, False):
@@ -142,6 +143,7 @@ def test_the_step_is_factorised_once_and_follows_its_share():
                                                   < 0.05, 0.5, 1.0)
             stepper.step()
             history.append(problem.w.x.array.copy())
+        assert not affine or stepper._affine.factorisation == "cholesky"
         runs.append(np.array(history))
     scale = np.abs(runs[1]).max()
     assert scale > 0
