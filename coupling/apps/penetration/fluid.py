@@ -41,8 +41,9 @@ class FluidParameters:
             forces alone blew up at 5 in the loose window (k = 1e-11, beta_f = 1e-6).
             scenes/cptu_2d.toml takes 25: at V ~ 1 (3 packings, benchmarks/cptu_cost.py)
             q_c 1.4 % below every DEM step's on average (-11 to +5 % a packing), u2 alike,
-            at 2.9x the dry push's CPU against 22x (2.4x since, 2.1x with response_every
-            5); 50: q_c 11 % below at 2.3x.
+            at 2.9x the dry push's CPU against 22x (2.5x since, 2.1x with response_every
+            5); 50: q_c 11 % below at 2.3x (since: +6 % at 2.1x, -5 % at 1.7x with
+            response_every 5, within the packings' scatter).
         response_every: with every > 1, the most DEM steps per application of the
             interval's forces: the impulse of multiple time stepping, s times the middle
             step's force once per block of s steps (`dem.response.LinearResponse`'s stride;
@@ -50,9 +51,9 @@ class FluidParameters:
             it with ``s dt omega <= 0.5``, omega the interval response's stiffest frequency
             measured at the push's first fluid step (stable below 2; at 0.5 that mode's
             period is 1.1 % short). 1: every DEM step. scenes/cptu_2d.toml takes 5: at
-            V ~ 1 omega dt = 0.057, so 5 (push 2.1x the dry one's CPU against 2.4x; q_c over
-            3 packings 4.25 against 4.59 kPa, one packing's scatter ~10 %); undrained
-            omega dt = 0.12, so 1.
+            V ~ 1 omega dt = 0.057, so 5 (benchmarks/cptu_cost.py, 3 packings: push 2.1x
+            the dry one's CPU against 2.5x; q_c 4.49 against 4.33 kPa, 4.13 with the fluid
+            every DEM step, a packing's scatter ~15 %); undrained omega dt = 0.12, so 1.
         continuum: how the continuum takes the pore pressure. ``"biot"`` (default): beyond
             the overlap in total stress, its FE step holding the pressure's increment over
             the step with its own flow (`granfe.models.undrained_split.UndrainedSplit`), so
