@@ -25,7 +25,9 @@ back-substitution with the step's factors). On one rank the DEM applies that res
 itself in its fused step loop (`dem.response.LinearResponse` from
 :meth:`ChamberFlow.interval_response`) and the fluid steps run between DEM steps
 (`dem.Simulation.step`'s ``pause``); on several, or under an exchange's hook, a hook
-applies it (the Python step loop).
+applies it (the Python step loop). Either way it may come once in s DEM steps, s times
+its middle step's force (multiple time stepping's impulse; ``fluid.response_every``, s
+chosen below the response's stiffest mode: :meth:`SaturatedPenetration._stride`).
 
 The continuum (``fluid.continuum = "biot"``, the default) is a Biot continuum in total
 stress beyond the overlap: its FE step is `granfe.models.undrained_split.UndrainedSplit`
