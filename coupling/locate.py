@@ -262,8 +262,8 @@ def relocate(
     cells = np.array(cells, dtype=np.int32)
     if cells.shape != (x.shape[0],):
         raise ValueError(f"cells must have shape ({x.shape[0]},), got {cells.shape}")
+    before = cells.copy()
     if maps is not None:   # walk from the old cells through their neighbours (numba)
-        before = cells.copy()
         X = np.empty((x.shape[0], mesh.topology.dim))
         found = np.empty(x.shape[0], dtype=bool)
         _walk(x, cells, maps[0], maps[1], maps[2], 1e-12, 8, X, found)
@@ -272,7 +272,6 @@ def relocate(
     else:
         X = reference_coordinates(mesh, x, cells, maps)
         left = np.flatnonzero(~inside_reference(mesh.topology.cell_type.name, X, tol=1e-12))
-        before = cells.copy()
     lost = np.zeros(x.shape[0], dtype=bool)
     if left.size:
         tdim = mesh.topology.dim

@@ -25,7 +25,7 @@ from numba import njit
 
 from dem.state import FREE
 
-__all__ = ["LinearResponse"]
+__all__ = ["LinearResponse", "applies"]
 
 
 @njit(cache=True)
@@ -96,13 +96,13 @@ def _from_nodes(g, weight, force, kind, hit, rows, nodes, from_nodes, d, out):
 
 
 @njit(cache=True)
-def _skipped(count) -> bool:
-    """Whether the call count[0] of a stride count[1] = s > 1 applies nothing: one call's
-    force stands for the block of s calls it is the middle of (calls b s + 1 .. (b + 1) s,
-    applied at b s + (s - 1) // 2 + 1: never at a block's last call, which ends a fluid
-    interval whose next step replaces the forces before the second half of the kick)."""
-    s = count[1]
-    return s > 1 and (count[0] - 1) % s != (s - 1) // 2
+def applies(k, s) -> bool:
+    """Whether the k-th step (from 1) since the reference applies a response of stride s: one
+    step's force stands for the block of s steps it is the middle of (steps b s + 1 ..
+    (b + 1) s, applied at b s + (s - 1) // 2 + 1: never at a block's last step, which ends a
+    fluid interval whose next step replaces the forces before the second half of the kick).
+    A hook that applies such a response itself (the 2-rank fluid) takes its steps from here."""
+    return s <= 1 or (k - 1) % s == (s - 1) // 2
 
 
 @njit(cache=True)
@@ -112,13 +112,13 @@ def linear_response(x, force, kind, hit, rows, xref, nodes, to_nodes, from_nodes
     """Add ``f = T A^-1 (S u - k r)`` (the module docstring) to the forces of the FREE rows
     among ``rows`` (m,), and set their flags in ``hit``; count (3,): [0] (k) counts the
     calls since the reference, [1] the stride s (at s > 1 only every s-th call applies a
-    force, s times the call's: :func:`_skipped`), [2] whether out holds a force. xref (m, d)
+    force, s times the call's: :func:`applies`), [2] whether out holds a force. xref (m, d)
     [m]; the basis tables nodes, to_nodes, from_nodes (m, q) (a node -1: none); S (nb, nn d),
     T (nn d, nb) CSR; L, U the CSR factors of A without their diagonals (L's is 1) and the
     inverse of U's, perm_r / perm_c SuperLU's permutations; u (m d,), w, g (nn d,), b, y, z
     (nb,) scratch; out (m, 3) the force [N] added at this call (0 at a skipped one)."""
     count[0] += 1
-    if _skipped(count):
+    if not applies(count[0], count[1]):
         if count[2]:
             out[:] = 0.0
             count[2] = 0
@@ -175,8 +175,8 @@ class LinearResponse:
             force of the middle step of each block of s steps since the reference, nothing
             at the others, so the kicks give each block the impulse s dt f. It is stable
             and second order while ``s dt omega`` stays well below 2 (omega the response's
-            stiffest frequency over the particles' masses, :meth:`stiffest`; ~0.3 keeps the
-            phase error ~0.4 %), and costs a step 1/s of the response.
+            stiffest frequency over the particles' masses; ~0.3 keeps the phase error
+            ~0.4 %), and costs a step 1/s of the response (:func:`applies`: which steps).
 
     Use: ``sim.step(n, response=resp)``; a new reference: :meth:`reset` (positions only)
     or :meth:`update`. :attr:`force` holds the force of the last step (m, 3) [N].

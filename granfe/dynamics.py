@@ -368,7 +368,6 @@ class _AffineStep:
         self._l_constants = [] if self._l_ufl is None else list(self._l_ufl.constants())
         self._l_varies = self._l_ufl is not None and len(self._l_ufl.coefficients()) > 0
         self._matrix_key = self._l_key = None
-        self._factor_chosen = False
         #: "cholesky" or "lu" (:meth:`_symmetric_factor`), once the step is first assembled
         self.factorisation = None
         self._watched = [f for f in model.fixed_fields() if f in set(k_ufl.coefficients()) | set(m_ufl.coefficients())]
@@ -436,9 +435,8 @@ class _AffineStep:
         step's triangular solves, bound by reading them from memory, take ~9 % less time
         (the 3D chamber's 10.6k dofs: 8.3 against 9.1 ms; its factorisation 0.56 against
         0.65 s). A non-symmetric J keeps LU."""
-        if self._factor_chosen:
+        if self.factorisation is not None:
             return
-        self._factor_chosen = True
         pc = self.ksp.getPC()
         norm = A.norm(PETSc.NormType.INFINITY)
         want = "cholesky" if norm > 0 and A.isSymmetric(1e-13 * norm) else "lu"

@@ -103,7 +103,7 @@ from coupling.locate import locate_owned, owner_ranks, relocate
 from coupling.pore_fluid import DarcyFlow, GrainSpace, PoreFluidParameters
 from dem.drag import group_means
 from dem.ldl import LDL
-from dem.response import LinearResponse
+from dem.response import LinearResponse, applies
 from dem.state import FREE
 from granfe.dynamics import AlphaParameters
 from granfe.models.undrained_split import UndrainedSplit
@@ -919,8 +919,7 @@ class SaturatedPenetration(CoupledPenetration):
         def interval_hook():
             nonlocal since
             since += 1
-            # (a stride's blocks as `dem.response.LinearResponse` takes them)
-            if stride == 1 or (since - 1) % stride == (stride - 1) // 2:
+            if applies(since, stride):     # (the stride's blocks, as LinearResponse's)
                 self._interval_step(since * sim.dt, stride)
             else:
                 self._interval_force = None
