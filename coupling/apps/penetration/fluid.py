@@ -55,7 +55,8 @@ class FluidParameters:
             the dry one's CPU against 2.5x; q_c 4.49 against 4.33 kPa, 4.13 with the fluid
             every DEM step, a packing's scatter ~15 %); undrained omega dt = 0.12, so 1.
             Measured once: over the 45 mm push omega dt stays within 0.056-0.063 at V ~ 1
-            and 0.119-0.153 undrained (sampled every 60 FE steps), well inside the margin.
+            and 0.119-0.153 undrained (sampled every 60 FE steps; a one-off probe), well
+            inside the margin.
         continuum: how the continuum takes the pore pressure. ``"biot"`` (default): beyond
             the overlap in total stress, its FE step holding the pressure's increment over
             the step with its own flow (`granfe.models.undrained_split.UndrainedSplit`), so
