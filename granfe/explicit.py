@@ -269,9 +269,11 @@ class CentralDifference:
 
 
 def _forces(problem: ContinuumProblem):
-    """The cheapest residual the model allows: the fused simplex kernel (degree-1 simplices,
-    a model with ``simplex_forces``), else the model's UFL residual with the state's
-    commit."""
+    """The cheapest residual the model allows: a matrix product for an affine model, the
+    fused simplex kernel (degree-1 simplices, a model with ``simplex_forces``), else the
+    model's UFL residual with the state's commit."""
+    if _LinearForces.fits(problem):
+        return _LinearForces(problem)
     if problem.state and hasattr(problem.model, "simplex_forces") and SimplexCells.fits(problem):
         return _SimplexForces(problem)
     return _FormForces(problem)
@@ -307,6 +309,67 @@ class _FormForces:
         if commit and self.problem.state:
             self.problem.state.commit()
         _assemble_into(b, self.form)
+
+
+class _LinearForces:
+    """The residual ``K w - L`` of an affine model without history: the stiffness K (weighted,
+    no Dirichlet conditions, stored zeros dropped) assembled once and again only when one of
+    its constants changes, one matrix product a substep; the loads L assembled once a step
+    (they are held through its substeps). The UFL residual costs an assembly a substep (in
+    the 3D chamber 5.5 ms against 1 ms for the product), and the product is as parallel as
+    the mesh, in a fixed order: the same bits run to run on a rank count."""
+
+    @staticmethod
+    def fits(problem: ContinuumProblem) -> bool:
+        from ufl.algorithms import expand_derivatives, extract_coefficients
+
+        model = problem.model
+        if not model.linear or problem.state or model.fixed_fields():
+            return False
+        w = problem.w
+        J = expand_derivatives(ufl.derivative(problem.residual(), w, ufl.TrialFunction(problem.V)))
+        # the partition weight is fixed once set (ContinuumProblem.set_weight)
+        fixed = set() if problem.weight is None else set(extract_coefficients(ufl.as_ufl(problem.weight)))
+        L = problem.external_work(ufl.TestFunctions(problem.V))
+        return not (set(J.coefficients()) - fixed) and (L == 0 or w not in L.coefficients())
+
+    def __init__(self, problem: ContinuumProblem):
+        self.problem = problem
+        V, jit = problem.V, problem.jit_options
+        dw = ufl.TestFunctions(V)
+        k_ufl = problem.weighted(problem.model.internal_work(ufl.TrialFunctions(V), dw,
+                                                             problem.state.committed)) * problem.dx
+        self._k = fem.form(k_ufl, jit_options=jit)
+        self._constants = list(k_ufl.constants())
+        L = problem.external_work(dw)
+        self._l = None if L == 0 else fem.form(L, jit_options=jit)
+        self.load = fem.Function(V)
+        self.K, self._key = None, None
+
+    def start(self) -> None:
+        from dolfinx.fem.petsc import assemble_matrix
+
+        from granfe.dynamics import _without_zeros
+
+        key = tuple(np.asarray(c.value).tobytes() for c in self._constants)
+        if key != self._key:
+            A = assemble_matrix(self._k)
+            A.assemble()
+            if self.K is not None:
+                self.K.destroy()
+            self.K, self._key = _without_zeros(A), key
+            A.destroy()
+        if self._l is not None:
+            _assemble_into(self.load.x.petsc_vec, self._l)
+
+    def finish(self) -> None:
+        pass
+
+    def residual(self, b: PETSc.Vec, commit: bool) -> None:
+        self.K.mult(self.problem.w.x.petsc_vec, b)
+        if self._l is not None:
+            b.axpy(-1.0, self.load.x.petsc_vec)
+        b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
 
 class SimplexCells:

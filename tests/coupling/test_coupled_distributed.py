@@ -29,9 +29,10 @@ CHAMBER_3D = dict(dim=3, chamber_width=0.075, chamber_depth=0.045, radius=1.5e-3
 
 @pytest.mark.mpi
 @pytest.mark.skipif(MPI.COMM_WORLD.size == 1, reason="on one rank distribute_grains changes nothing")
-def test_distributed_push_is_the_replicated_one(tmp_path):
+@pytest.mark.parametrize("integrator", ["implicit", "explicit"])
+def test_distributed_push_is_the_replicated_one(tmp_path, integrator):
     comm = MPI.COMM_WORLD
-    prm = PenetrationParameters(**CHAMBER_3D)
+    prm = PenetrationParameters(**CHAMBER_3D, continuum_integrator=integrator)
     q_replicated = np.array([h["q_c"] for h in CoupledPenetration(prm, comm, log=lambda m: None).run()])
     split = replace(prm, distribute_grains=True)
     model = CoupledPenetration(split, comm, log=lambda m: None)

@@ -14,7 +14,7 @@ import ufl
 from dolfinx import fem, mesh
 
 from granfe.dynamics import GeneralizedAlpha
-from granfe.explicit import CentralDifference
+from granfe.explicit import CentralDifference, _FormForces, _LinearForces
 from granfe.materials import MicropolarMaterial
 from granfe.models.drucker_prager import DruckerPragerMaterial, MicropolarDruckerPrager
 from granfe.models.micropolar import Micropolar
@@ -244,6 +244,58 @@ def test_explicit_plastic_on_two_ranks_is_serial():
     (fa, wa), (fb, wb) = runs
     assert np.abs(fa - fb).max() <= 1e-10 * np.abs(fb).max()
     assert wa == pytest.approx(wb, rel=1e-10)
+
+
+@pytest.mark.mpi
+def test_an_elastic_residual_is_its_stiffness_times_w():
+    """An elastic body's forces are ``K w - L`` (K assembled once, a product a substep): the
+    UFL residual to round-off, with a partition weight, a surface traction and nodal loads,
+    and after the load changes; the stiffness is assembled again when a modulus changes."""
+    p, _ = block(Micropolar(ELASTIC), n=(3, 3, 2), prefix="lin_")
+    V0 = fem.functionspace(p.domain, ("DG", 0))
+    weight = fem.Function(V0)
+    weight.interpolate(lambda x: np.where(x[0] < 0.1, 1e-6, 1.0))
+    p.set_weight(weight)
+    traction = fem.Constant(p.domain, np.array([0.0, 0.0, -1e3]))
+    p.traction(_at(2, 0.1), traction)
+    nodal = p.nodal_load("u")
+    assert _LinearForces.fits(p)
+    fast, slow = _LinearForces(p), _FormForces(p)
+    rng = np.random.default_rng(3)
+    p.w.x.array[:] = 1e-4 * rng.standard_normal(p.w.x.array.size)
+    p.w.x.scatter_forward()
+    b_fast, b_slow = fem.Function(p.V), fem.Function(p.V)
+
+    def agree():
+        fast.residual(b_fast.x.petsc_vec, commit=True)
+        slow.residual(b_slow.x.petsc_vec, commit=True)
+        # owned and ghost entries alike (the acceleration is taken on both)
+        return global_max(b_fast.x.array - b_slow.x.array) / global_max(b_slow.x.array)
+
+    for load in (1.0, -3.0):
+        traction.value[2] = -1e3 * load
+        nodal.set(load * rng.standard_normal(p.w.x.array.size))
+        fast.start()
+        assert agree() <= 1e-11
+    K = fast.K
+    p.model.update(replace(ELASTIC, mu=2 * ELASTIC.mu))
+    fast.start()
+    assert fast.K is not K
+    assert agree() <= 1e-11
+
+
+@pytest.mark.mpi
+def test_explicit_elastic_runs_are_reproducible_and_serial():
+    """The punched elastic block (the product's path): two runs on the ranks of COMM_WORLD
+    give the same bits, and the one-rank run the same forces to round-off."""
+    runs = []
+    for comm in (MPI.COMM_WORLD, MPI.COMM_WORLD, MPI.COMM_SELF):
+        p, settle = block(Micropolar(ELASTIC), comm=comm, prefix=f"el{len(runs)}_")
+        stepper = CentralDifference(p, 2e-4)
+        assert isinstance(stepper._forces, _LinearForces)
+        runs.append(punch_history(stepper, settle, 8))
+    assert np.array_equal(runs[0], runs[1])
+    assert np.abs(runs[0] - runs[2]).max() <= 1e-10 * np.abs(runs[2]).max()
 
 
 @pytest.mark.parametrize("gdim", [2, 3])
