@@ -189,6 +189,7 @@ class DistributedSimulation(Decomposition, CollectiveResults):
         self._unbooked0 = 0.0
         self._pk = self._decay = None  # a step call's prescribed motions and damping
         self._hook, self._stop = None, False  # a step call's hook, and its request to stop
+        self._force_sums = None  # a step call's force sums (gids, out)
         self._wall_total = None  # `wall_forces` of the last force pass, once summed
         self.local, self._plan = None, None
         self._ext = None   # (global ids (k,) sorted, forces (k, 3) [N]) of set_external_force
@@ -292,7 +293,8 @@ class DistributedSimulation(Decomposition, CollectiveResults):
                 _exchange_rows(comm, wall, owner_of[nl.wi[kw]]))
 
     # ---------------------------------------------------------------- stepping
-    def step(self, n: int = 1, hook=None, prescribed=None, decay: float | None = None) -> int:
+    def step(self, n: int = 1, hook=None, prescribed=None, decay: float | None = None,
+             sums=None) -> int:
         """Advance n steps of dt on every rank (collective, the same arguments on every
         rank); returns n.
 
@@ -305,9 +307,16 @@ class DistributedSimulation(Decomposition, CollectiveResults):
         after each step's force pass, before its second half-kick, on every rank: it is
         collective (it may call `wall_forces`, and set wall velocities, alike on every
         rank; ``time`` and ``nsteps`` hold their values at the start of the call), and a
-        true return, the same on every rank, ends the call after that step. Returns the
-        number of steps done."""
+        true return, the same on every rank, ends the call after that step. ``sums``: a
+        pair (gids (k,) int, out (k, 3) float): after every force pass the forces of the
+        particles ``gids`` that this rank owns are added to their rows of ``out`` by the
+        local run's own loop (`Simulation.step`'s sums; a hook would cost a Python call a
+        step); rows of particles owned elsewhere are left as they are (the caller sums
+        ``out`` over the ranks). Returns the number of steps done."""
         n = int(n)
+        if sums is not None and np.shape(sums[1]) != (np.size(sums[0]), 3):
+            raise ValueError(f"sums: out must have shape ({np.size(sums[0])}, 3), got {np.shape(sums[1])}")
+        self._force_sums = None if sums is None else (np.asarray(sums[0], np.int64).ravel(), sums[1])
         self._pk = None if prescribed is None else prescribed.pack(n, self.dt, self._kinds)
         self._decay, self._hook, self._stop = decay, hook, False
         at = 0  # steps done in this call (the prescribed coefficients' row)
@@ -320,8 +329,16 @@ class DistributedSimulation(Decomposition, CollectiveResults):
                 self._check()
         if self.nsteps % self.check_every:
             self._check()
-        self._pk = self._decay = self._hook = None
+        self._pk = self._decay = self._hook = self._force_sums = None
         return at
+
+    def _local_sums(self):
+        """The call's ``sums`` for the local run now: (positions in gids, (local rows, a
+        zeroed buffer)), or None."""
+        if self._force_sums is None or self.local is None:
+            return None
+        at, rows = self.owned_rows(self._force_sums[0])
+        return at, (rows, np.zeros((len(rows), 3)))
 
     def _local_motion(self, at: int) -> _LocalMotion | None:
         """The call's prescribed motions (packed by global id) of the rows this rank holds,
@@ -344,8 +361,10 @@ class DistributedSimulation(Decomposition, CollectiveResults):
         decay = self._decay
         self._wall_total = None
         if self.comm.size == 1:  # no halo, nothing to exchange or decompose
+            summed = self._local_sums()
             done = self.local.step(n, hook=None if self._hook is None else self._after_pass,
-                                   prescribed=self._local_motion(at), decay=decay)
+                                   prescribed=self._local_motion(at), decay=decay,
+                                   sums=None if summed is None else summed[1])
         else:
             motion = self._local_motion(at)
             if motion is not None:
@@ -360,9 +379,10 @@ class DistributedSimulation(Decomposition, CollectiveResults):
                                         f"{self.dt:.4g} s): raise halo_skin or lower dt")
                 motion = self._local_motion(at)  # of the new local run
             self._left = n
+            summed = self._local_sums()
             if self.local is not None:
                 done = self.local.step(n, hook=self._between_steps, prescribed=motion,
-                                       decay=decay)
+                                       decay=decay, sums=None if summed is None else summed[1])
             else:
                 done = n
                 for k in range(n):
@@ -370,6 +390,8 @@ class DistributedSimulation(Decomposition, CollectiveResults):
                     if self._between_steps():
                         done = k + 1
                         break
+        if summed is not None:
+            self._force_sums[1][summed[0]] += summed[1][1]
         for _ in range(done):
             self.time += self.dt
         self.nsteps += done

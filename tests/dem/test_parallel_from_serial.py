@@ -311,3 +311,27 @@ def test_an_empty_rank_takes_particles_at_a_decomposition():
     push(sim, pen, base)
     push(dsim, pen, base)
     assert_continues(dsim, sim, pen, exact=comm.size == 1)
+
+
+@pytest.mark.mpi
+def test_force_sums_are_the_serial_ones():
+    """``step(sums=...)``: the forces on the clump's spheres and some grains summed over the
+    push by each rank's local loop (the rows it owns), added over the ranks, are the serial
+    run's sums (its fused loop) to round-off, through the push's decompositions; a misfit
+    buffer is refused, named."""
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    sim, pen = settled()
+    dsim = DistributedSimulation.from_simulation(sim, comm)
+    rows = np.r_[pen, np.arange(0, pen[0], 37)].astype(np.int64)
+    out, ref = np.zeros((len(rows), 3)), np.zeros((len(rows), 3))
+    base = sim.p.x[pen].copy()
+    cone = dem.Translated(pen, base, (0.0, 0.0, 1.0), offset=0.0, speed=-1.5)
+    sim.step(PUSH, prescribed=dem.Prescribed(cone), sums=(rows, ref))
+    dsim.step(PUSH, prescribed=dem.Prescribed(cone), sums=(rows, out))
+    total = comm.allreduce(out)
+    assert np.abs(ref).max() > 0 and (comm.size == 1 or dsim.decompositions > 1)
+    assert np.abs(total - ref).max() <= 1e-12 * np.abs(ref).max()
+    with pytest.raises(ValueError, match="sums: out must have shape"):
+        dsim.step(1, sums=(rows, np.zeros((len(rows), 2))))

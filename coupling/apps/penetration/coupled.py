@@ -564,7 +564,6 @@ class CoupledPenetration:
                                                          prescribed_pairs=not self.forces)
         if saved is not None:
             self.sim.load_state(saved["grains_rank"])
-        self._ghost_rows = None   # (positions in the ghost list, local rows) of the owned ghosts
 
     # ---- set-up -------------------------------------------------------------------------
     def _continuum_model(self):
@@ -1051,35 +1050,20 @@ class CoupledPenetration:
         grains' push on the ghosts averaged over the sub-cycle (time-averaged impulses, not the
         last force: DESIGN's lesson from peers), its increment from the start handed to the FE
         as nodal loads ``N^T f`` (relaxed by ``prm.relaxation``)."""
-        prm, sim, rows = self.prm, self.sim, self.ghost_local
-        total = np.zeros_like(self.f0)
-        sums = None if self.distributed else (rows.astype(np.int64), np.zeros((len(rows), 3)))
-
-        def add_reactions():   # this rank's owned ghosts; summed over the ranks after
-            at, local = self._owned_ghosts()
-            total[at] += sim.local.p.force[local, :prm.dim]
+        prm, rows = self.prm, self.ghost_local
+        # the DEM's own sums over its steps (no hook: the serial run keeps its fused loop);
+        # distributed, each rank sums the ghosts it owns (the rows of the global ids), added
+        # over the ranks after
+        sums = (rows.astype(np.int64), np.zeros((len(rows), 3)))
 
         def exchange():
-            if self.distributed:
-                total[:] = self.comm.allreduce(total)
-            else:   # (the DEM's own sums over its steps: its fused loop, no hook)
-                total[:] = sums[1][:, :prm.dim]
-            push = total / prm.substeps - self.f0
+            total = self.comm.allreduce(sums[1]) if self.distributed else sums[1]
+            push = total[:, :prm.dim] / prm.substeps - self.f0
             self.f_applied += prm.relaxation * (push - self.f_applied)
             self.interface.apply(self.f_applied)
             return {"ghost_push": float(np.abs(self.f_applied).sum())}
 
-        if sums is None:
-            return self._staggered_step(exchange, hook=add_reactions)
         return self._staggered_step(exchange, sums=sums)
-
-    def _owned_ghosts(self) -> tuple[np.ndarray, np.ndarray]:
-        """The ghosts this rank owns in the distributed run: their positions in the ghost
-        list and their rows in its local run (found again after each decomposition)."""
-        sim = self.sim
-        if self._ghost_rows is None or self._ghost_rows[0] is not sim.gid:
-            self._ghost_rows = (sim.gid, *sim.owned_rows(self.ghost_local))
-        return self._ghost_rows[1], self._ghost_rows[2]
 
     def _staggered_step(self, exchange, hook=None, sums=None) -> dict:
         """One FE step of a staggered exchange: one DEM sub-cycle (``hook`` after each DEM
