@@ -132,9 +132,10 @@ class Prescribed:
             parts.append((rows, np.full(k, q, np.int64), base, a, b, v, om,
                           np.full(k, setom), coef))
         rows = np.concatenate([p[0] for p in parts])
-        if len(np.unique(rows)) != len(rows):
-            u, c = np.unique(rows, return_counts=True)
-            raise ValueError(f"prescribed: particle {u[c > 1][0]} is in two motions")
+        # (a count over the particles, not np.unique's sort: a coupled run packs every FE step)
+        counts = np.bincount(rows, minlength=len(kind))
+        if counts.max(initial=0) > 1:
+            raise ValueError(f"prescribed: particle {int(np.argmax(counts > 1))} is in two motions")
         cat = [np.ascontiguousarray(np.concatenate([p[j] for p in parts])) for j in range(1, 8)]
         coef = np.ascontiguousarray(np.stack([p[8] for p in parts], axis=1))  # (n, groups, 2)
         return (rows, *cat, coef)
