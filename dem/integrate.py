@@ -411,11 +411,13 @@ class Simulation(EnergyLedger, SimulationState):
         applied after the drag, in the fused loop too. ``pause()`` runs between steps after
         every ``pause_every``-th step of the call (not after the last): the call's motions
         and loop go on after it, where a caller would otherwise split the call (a fluid step
-        every few DEM steps, which may set external forces or a new response's reference).
-        ``sums``: a pair (rows (k,) int64, out (k, 3) float): after every force pass (and
-        the response) the force rows ``rows`` are added to ``out``, in the fused loop too (a
-        coupling's time-averaged reactions on its ghosts, which a hook would read at the
-        Python loop's cost). Returns the number of steps done."""
+        every few DEM steps, which may set external forces or a new response's reference);
+        a true return ends the call there (`dem.parallel`'s halo exchange between the steps
+        of its local runs: a stale halo ends the local call). ``sums``: a pair (rows (k,)
+        int64, out (k, 3) float): after every force pass (and the response) the force rows
+        ``rows`` are added to ``out``, in the fused loop too (a coupling's time-averaged
+        reactions on its ghosts, which a hook would read at the Python loop's cost). Returns
+        the number of steps done."""
         p, dt, cell = self.p, self.dt, self.cell
         sum_rows, sum_out = _sums(sums, p.n)
         pk = None if prescribed is None else prescribed.pack(int(n), dt, p.kind)
@@ -447,8 +449,9 @@ class Simulation(EnergyLedger, SimulationState):
                     self._check()
                 if s == n:
                     break
-                if k and pending is None and _due(s, pause_every):
-                    pause()
+                if k and pending is None and _due(s, pause_every) and pause():
+                    n = s
+                    break
                 if k and pending is None:
                     continue
                 # a neighbour build is due before this step's force pass (its drift
@@ -503,8 +506,9 @@ class Simulation(EnergyLedger, SimulationState):
             if last:
                 n = s
                 break
-            if paused and s < n:
-                pause()
+            if paused and s < n and pause():
+                n = s
+                break
         if self.nsteps % self.check_every:
             self._check()
         return n

@@ -380,9 +380,16 @@ class DistributedSimulation(Decomposition, CollectiveResults):
                 motion = self._local_motion(at)  # of the new local run
             self._left = n
             summed = self._local_sums()
-            if self.local is not None:
+            local_sums = None if summed is None else summed[1]
+            if self.local is not None and self._hook is None and decay is None:
+                # nothing to run after a force pass: the exchange between the steps, and the
+                # local run keeps its fused loop (one numba call a step, not the Python loop)
+                done = self.local.step(n, prescribed=motion, sums=local_sums, pause_every=1,
+                                       pause=self._between_fused_steps)
+                self._wall_total = None   # (the last exchange's sum is of the force pass before)
+            elif self.local is not None:
                 done = self.local.step(n, hook=self._between_steps, prescribed=motion,
-                                       decay=decay, sums=None if summed is None else summed[1])
+                                       decay=decay, sums=local_sums)
             else:
                 done = n
                 for k in range(n):
@@ -415,6 +422,20 @@ class DistributedSimulation(Decomposition, CollectiveResults):
             # the local lists would soon rebuild, rank by rank: all of them now instead
             # (once between decompositions: then the displacements from the lists' build
             # are no longer those from the halos')
+            self._rebuild_lists()
+            self._relisted = True
+        return False
+
+    def _between_fused_steps(self) -> bool:
+        """`Simulation.step` pause between two steps of a local call without a caller's hook
+        or damping (collective): True to end the local call there (the coming drift could
+        carry a particle beyond the halo); else the halo copies as the coming half-kick and
+        drift will make them, and the lists rebuilt on every rank once the skin is half
+        spent (as `_between_steps`, which runs before the step's second half-kick)."""
+        self._wall_total = None
+        if self._exchange(1):
+            return True
+        if not self._relisted and self._d2 > (0.5 * self.skin) ** 2:
             self._rebuild_lists()
             self._relisted = True
         return False
