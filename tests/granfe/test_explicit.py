@@ -250,7 +250,8 @@ def test_explicit_plastic_on_two_ranks_is_serial():
 def test_an_elastic_residual_is_its_stiffness_times_w():
     """An elastic body's forces are ``K w - L`` (K assembled once, a product a substep): the
     UFL residual to round-off, with a partition weight, a surface traction and nodal loads,
-    and after the load changes; the stiffness is assembled again when a modulus changes."""
+    and after the load changes; the stiffness is assembled again when a modulus changes; a
+    prestressed model keeps the UFL residual."""
     p, _ = block(Micropolar(ELASTIC), n=(3, 3, 2), prefix="lin_")
     V0 = fem.functionspace(p.domain, ("DG", 0))
     weight = fem.Function(V0)
@@ -282,6 +283,16 @@ def test_an_elastic_residual_is_its_stiffness_times_w():
     fast.start()
     assert fast.K is not K
     assert agree() <= 1e-11
+    # a term without w in the internal work (a prestress) is not K w: the UFL residual then
+    prestress = fem.Constant(p.domain, 1e3)
+
+    class Prestressed(Micropolar):
+        def internal_work(self, w, dw, state):
+            return super().internal_work(w, dw, state) + prestress * ufl.div(dw[0])
+
+    q, _ = block(Prestressed(ELASTIC), n=(1, 1, 1), prefix="pre_")
+    assert not _LinearForces.fits(q)
+    assert isinstance(CentralDifference(q, 1e-4)._forces, _FormForces)
 
 
 @pytest.mark.mpi
