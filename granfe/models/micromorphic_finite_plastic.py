@@ -1,5 +1,6 @@
 """Finite-strain three-level micromorphic Drucker-Prager elastoplasticity on a mesh (after
-Regueiro 2010; 3D): :class:`MicromorphicFiniteDruckerPrager`, the UFL / dolfinx side.
+Regueiro 2010; 3D and 2D plane strain): :class:`MicromorphicFiniteDruckerPrager`, the UFL /
+dolfinx side.
 
 The material point (the multiplicative splits ``F = F^e F^p``, ``chi = chi^e chi^p`` and the
 plastic micro-gradient ``G^p``, the cones on the conjugates of the three levels' plastic
@@ -8,6 +9,12 @@ rates, the return mapping and its consistent tangent) is
 the equations. The model runs it at the quadrature points and assembles the residual from
 the nominal stresses and the tangent it returns (class docstring). Checked by the tests
 (tests/granfe/test_micromorphic_finite_plasticity.py).
+
+Plane strain (2D) is the 3D point with the out-of-plane motion held: ``F_33 = chi_33 = 1``,
+``u_3,I = u_I,3 = 0``, ``phi_i3 = phi_3i = 0`` and no gradient along 3. The 2D fields are
+embedded in the kernel's 3D measures with those entries zero, so the point returns its full
+3D state (the out-of-plane stresses of plane strain included), and the residual's test
+measures, zero there too, keep the in-plane equations.
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from granfe.models.micromorphic import Micromorphic, as_tensor_field, strain_energy_density
+from granfe.models.micromorphic import Micromorphic, strain_energy_density
 from granfe.models.micromorphic_drucker_prager import MicromorphicDruckerPragerMaterial
 from granfe.models.micromorphic_finite import MicromorphicFiniteStrain
 from granfe.models.micromorphic_finite_return import finite_return, kernel_tables
@@ -31,7 +38,7 @@ __all__ = ["MicromorphicFiniteDruckerPrager"]
 
 class MicromorphicFiniteDruckerPrager(MicromorphicFiniteStrain):
     """Finite-strain micromorphic Drucker-Prager (:mod:`granfe.models.micromorphic_finite_return`)
-    on a mesh, 3D, with the return at the quadrature points
+    on a mesh, 3D and 2D plane strain (the module docstring), with the return at the quadrature points
     (:func:`~granfe.models.micromorphic_finite_return.finite_return`), as
     :class:`~granfe.models.micromorphic_iterative.MicromorphicDruckerPragerIterative` does
     in small strain: before every residual assembly :meth:`evaluate_points` fills the
@@ -63,7 +70,7 @@ class MicromorphicFiniteDruckerPrager(MicromorphicFiniteStrain):
         self._measures: dict[int, tuple] = {}
 
     def dimensions(self) -> tuple[int, ...]:
-        return (3,)
+        return (2, 3)
 
     def constant_values(self, material):
         self.tables = kernel_tables(material)
@@ -78,11 +85,27 @@ class MicromorphicFiniteDruckerPrager(MicromorphicFiniteStrain):
         """None for every variable: :meth:`evaluate_points` writes the trial state."""
         return {name: None for name in self.state_variables(3)}
 
+    def _embedded(self, w):
+        """``(grad u, phi, grad phi)`` as 3D UFL tensors (2D: zero out of plane)."""
+        u, phi = self._split(w)
+        d = ufl.shape(u)[0]
+        gu, gp = ufl.grad(u), ufl.grad(phi)
+        if d == 3:
+            return gu, phi, gp
+
+        def inside(*ix):
+            return all(i < d for i in ix)
+
+        r = range(3)
+        return (ufl.as_matrix([[gu[i, j] if inside(i, j) else 0.0 for j in r] for i in r]),
+                ufl.as_matrix([[phi[i, j] if inside(i, j) else 0.0 for j in r] for i in r]),
+                ufl.as_tensor([[[gp[i, j, k] if inside(i, j, k) else 0.0 for k in r] for j in r] for i in r]))
+
     def measures(self, w):
         """``x(w) = [grad u, phi, grad phi]`` (row-major: ``u_i,J``, ``phi_iJ``,
-        ``phi_iJ,K``)."""
-        u, phi = self._split(w)
-        gu, gp, r = ufl.grad(u), ufl.grad(phi), range(3)
+        ``phi_iJ,K``; 3D, in 2D with the out-of-plane entries zero)."""
+        gu, phi, gp = self._embedded(w)
+        r = range(3)
         return ufl.as_vector([gu[i, j] for i in r for j in r] + [phi[i, j] for i in r for j in r]
                              + [gp[i, j, k] for i in r for j in r for k in r])
 
@@ -102,24 +125,26 @@ class MicromorphicFiniteDruckerPrager(MicromorphicFiniteStrain):
 
     def stresses(self, w, state):
         """The first Piola-Kirchhoff ``P``, PK2 ``S = F^-1 P`` and Cauchy ``P F^T / J`` of
-        the expansion."""
+        the expansion (2D: their in-plane parts; F is block diagonal with ``F_33 = 1``)."""
         y = self._expansion(w, state)
-        P = ufl.as_matrix([[y[3 * i + j] for j in range(3)] for i in range(3)])
-        F = ufl.Identity(3) + ufl.grad(self._split(w)[0])
+        u = self._split(w)[0]
+        d = ufl.shape(u)[0]
+        P = ufl.as_matrix([[y[3 * i + j] for j in range(d)] for i in range(d)])
+        F = ufl.Identity(d) + ufl.grad(u)
         return {"first_piola": P, "pk2": ufl.inv(F) * P, "cauchy": P * F.T / ufl.det(F)}
 
     def stored_energy(self, w, state):
         """The stored energy psi of the elastic measures at the committed plastic state (UFL)."""
-        u, phi = self._split(w)
+        grad_u, phi, grad_phi = self._embedded(w)
         eye = ufl.Identity(3)
-        F, chi = eye + ufl.grad(u), eye + as_tensor_field(phi, 3)
+        F, chi = eye + grad_u, eye + phi
         Fpi = ufl.inv(eye + state["plastic_deformation"])
         chipi = ufl.inv(eye + state["plastic_micro_deformation"])
         Gp = state["plastic_micro_gradient"]
         Ce = Fpi.T * F.T * F * Fpi
         Psie = Fpi.T * F.T * chi * chipi
         a, b, c, i, j, k, d = ufl.indices(7)
-        X = ufl.as_tensor(Fpi[i, a] * F[d, i] * ufl.grad(phi)[d, j, k] - Psie[a, i] * Gp[i, j, k],
+        X = ufl.as_tensor(Fpi[i, a] * F[d, i] * grad_phi[d, j, k] - Psie[a, i] * Gp[i, j, k],
                           (a, j, k))
         Ge = ufl.as_tensor(X[a, j, k] * chipi[j, b] * Fpi[k, c], (a, b, c))
         return strain_energy_density((Ce - eye) / 2, Psie - eye, Ge, self.constants)

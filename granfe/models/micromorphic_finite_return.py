@@ -100,7 +100,8 @@ differences; ~3 ms more a yielding point).
 :class:`~granfe.models.micromorphic_finite_plastic.MicromorphicFiniteDruckerPrager` runs the
 return and the tangent at the quadrature points of a mesh.
 
-Not here: plane strain (the kernel is 3D: 3 x 3 blocks, 5 levels), plastic spin, an
+The kernel is 3D (3 x 3 blocks, 5 levels); plane strain runs it with the out-of-plane
+motion held (:mod:`~granfe.models.micromorphic_finite_plastic`). Not here: plastic spin, an
 analytic Jacobian of the return (the differences cost most of its time). The seeds do
 not reproduce Regueiro's (2010) equations; the formulation above is derived here and
 checked by the tests (tests/granfe/test_micromorphic_finite_plasticity.py).

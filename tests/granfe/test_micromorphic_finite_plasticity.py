@@ -489,6 +489,78 @@ def test_one_element_uniaxial_compression_equals_the_point():
           "vs the point", np.abs(fe / ref - 1).max())
 
 
+def plane_strain_point_driver(mat, strains):
+    """The material point in plane-strain uniaxial stress by itself: for each u_y,y, the
+    u_x,x and in-plane phi (4) that make P_xx = 0 and the in-plane Q = 0, with u_z,z = 0 and
+    the out-of-plane phi zero (scipy's hybr, the return's tangent as Jacobian), the plastic
+    state committed step by step. Returns (eq macro, P_yy, P_zz) per step."""
+    tab = kernel_tables(mat)
+    state, v = initial_state(), np.zeros(5)
+    out = []
+    rows, cols = np.r_[0, 9, 10, 12, 13], np.r_[0, 9, 10, 12, 13]   # P_xx, Q_ab; u_x,x, phi_ab
+
+    def fields(v, eyy):
+        phi = np.zeros((3, 3))
+        phi[:2, :2] = v[1:].reshape(2, 2)
+        return np.diag([v[0], eyy, 0.0]), np.eye(3) + phi, np.zeros((3, 3, 3))
+
+    for eyy in strains:
+        def residual(v, eyy=eyy, state=state):
+            info = finite_return(*fields(v, eyy), state, mat, tab, tangent=True)[4]
+            return info["nominal"][rows] / MU, info["tangent"][np.ix_(rows, cols)] / MU
+
+        sol = scipy.optimize.root(residual, v, jac=True, method="hybr", options={"xtol": 1e-14})
+        assert np.abs(residual(sol.x)[0]).max() < 1e-12
+        v = sol.x
+        _, _, _, state, info = finite_return(*fields(v, eyy), state, mat, tab)
+        out.append((state["eq"][0], info["nominal"][4], info["nominal"][8]))
+    return np.array(out)
+
+
+def test_plane_strain_element_equals_the_plane_strain_point():
+    """2D plane strain: one bilinear quadrilateral (u, phi of degree 1, 4 points), symmetry
+    lines, the top pushed down 12 % in four steps, the side free: every point holds the
+    material point's own plane-strain uniaxial state (out-of-plane motion held, the
+    out-of-plane stress P_zz it carries included) to 1e-8, with Newton on the consistent
+    tangent in a few iterations a step; the in-plane Cauchy stress of the model's stresses
+    is the point's."""
+    from mpi4py import MPI
+
+    from dolfinx import fem, mesh
+
+    from granfe.models.micromorphic_finite_plastic import MicromorphicFiniteDruckerPrager
+    from granfe.problem import ContinuumProblem
+
+    mat = material(c=20e3)
+    domain = mesh.create_unit_square(MPI.COMM_SELF, 1, 1, mesh.CellType.quadrilateral)
+    p = ContinuumProblem(domain, MicromorphicFiniteDruckerPrager(mat), degree=(1, 1),
+                         quadrature_degree=2, prefix="mmfdp_ps_")
+    p.fix(lambda x: np.isclose(x[0], 0.0), "u_x")
+    p.fix(lambda x: np.isclose(x[1], 0.0), "u_y")
+    top = p.fix(lambda x: np.isclose(x[1], 1.0), "u_y", 0.0)
+    strains = [-0.02, -0.05, -0.08, -0.12]
+    its, fe = [], []
+    for eyy in strains:
+        top.value = eyy
+        its.append(p.solve())
+        eq = p.state.owned("equivalent_plastic_strain").reshape(-1, 5)
+        stress = p.state.owned("stress").reshape(-1, 45)
+        assert np.ptp(eq[:, 0]) < 1e-10 * eq[:, 0].max()           # homogeneous
+        fe.append((eq[0, 0], stress[0, 4], stress[0, 8]))
+    fe = np.array(fe)
+    ref = plane_strain_point_driver(mat, strains)
+    assert fe[0, 0] > 0 and np.all(np.diff(fe[:, 0]) > 0) and np.all(fe[:, 2] < 0)
+    np.testing.assert_allclose(fe, ref, rtol=1e-8)
+    assert max(its) <= 6, its
+    # sigma = P F^T / J with F = diag(F_xx, F_yy): sigma_yy = P_yy / F_xx, over the unit area
+    u = p.w.sub(0).collapse()
+    x = u.function_space.tabulate_dof_coordinates()
+    u_xx = u.x.array.reshape(-1, 2)[np.argmax(x[:, 0]), 0]      # u_x on the side x = 1
+    cauchy = p.model.stresses(p.split(p.w), p.state.committed)["cauchy"]
+    sigma_yy = fem.assemble_scalar(fem.form(cauchy[1, 1] * p.dx, jit_options=p.jit_options))
+    assert u_xx > 0 and sigma_yy == pytest.approx(ref[-1, 1] / (1 + u_xx), rel=1e-8)
+
+
 def test_rough_platens_residual_has_a_quadratic_taylor_remainder():
     """Two trilinear hexahedra stacked between rough platens (u_x = u_y = 0 and phi = 0 top
     and bottom; the middle nodes free), past a committed plastic step with every level yielding: the remainder
