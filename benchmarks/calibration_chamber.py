@@ -108,6 +108,8 @@ parser.add_argument("--integrator", choices=("implicit", "explicit"), default="i
                     help="the coupled cases' continuum time stepping (continuum.integrator): generalized-"
                          "alpha, or central differences on a lumped mass substepped below the stability "
                          "limit (granfe.explicit: a plastic step without a solve)")
+parser.add_argument("--damping", type=float, default=0.0,
+                    help="the explicit continuum's mass-proportional damping [1/s] (continuum.damping)")
 parser.add_argument("--stiffness", type=float, default=1.0,
                     help="coupling continuum_stiffness: the continuum's constants times this (the coupled cases)")
 parser.add_argument("--friction-deg", type=float, default=30.0,
@@ -178,7 +180,8 @@ def parameters(bc: str, seed: int, window: float | None, continuum: str = "micro
                     {} if constants == "lattice" else dict(continuum_constants=constants)) | (
                     dict(continuum_hardening=hardening) if hardening else {}) | (
                     dict(continuum_stiffness=args.stiffness) if window and args.stiffness != 1.0 else {}) | (
-                    dict(continuum_integrator=args.integrator) if window and args.integrator != "implicit" else {}) | {
+                    dict(continuum_integrator=args.integrator) if window and args.integrator != "implicit" else {}) | (
+                    dict(continuum_damping=args.damping) if window and args.damping else {}) | {
                     # the handshake named only off its default (the records before it had none)
                     k: v for k, v in exchange(window).items() if k != "handshake" or v != parser.get_default(k)}
 
@@ -295,7 +298,8 @@ def run_case(bc: str, seed: int, window: float | None, continuum: str = "micropo
     tag = ("" if continuum == "micropolar" else "_dp") + CONSTANTS_TAGS[constants] + (
         f"_h{hardening:g}" if hardening else "") + (
         f"_k{args.stiffness:g}" if window and args.stiffness != 1.0 else "") + (
-        "_explicit" if window and args.integrator != "implicit" else "") + "".join(
+        "_explicit" if window and args.integrator != "implicit" else "") + (
+        f"_damp{args.damping:g}" if window and args.damping else "") + "".join(
         EXCHANGE_TAGS[k](v) for k, v in exchange(window).items() if v != parser.get_default(k))
     if box is not None:
         name = f"{bc}_box{box * 1000:.0f}mm_s{seed}"
@@ -382,6 +386,8 @@ def case_label(case: dict) -> str:
         label += f", stiffness x{case['stiffness']:g}"
     if case.get("integrator", "implicit") != "implicit":
         label += f", {case['integrator']} continuum"
+    if case.get("damping"):
+        label += f" (damping {case['damping']:g}/s)"
     if case.get("exchange", {}).get("interface", "loose") != "loose":
         label += f", {case['exchange']['interface']} exchange"
     return label
@@ -491,6 +497,7 @@ def compare(bc: str) -> dict:
         cpu = cpu_total(runs)
         case = {"window_half_width": window, "continuum": continuum, "constants": constants,
                 "hardening": hardening, "stiffness": args.stiffness, "integrator": args.integrator,
+                "damping": args.damping,
                 "exchange": exchange(window),
                 "grains": runs[0]["grains"],
                 "dofs": runs[0]["dofs"],

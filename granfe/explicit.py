@@ -26,6 +26,12 @@ last substep's state). :meth:`solve` may be repeated (a staggered coupling's ite
 it starts again from the step's start, whose fields and committed state :meth:`predict`
 kept.
 
+Optional mass-proportional damping ``C = alpha M_L`` (``damping`` alpha [1/s]): the force
+``-alpha M_L v`` at the half-step velocity, so a mode of frequency omega decays at the
+damping ratio ``xi = alpha / (2 omega)`` and its energy as ``exp(-alpha t)``: it damps the
+low modes (a body's ringing), as a granular far field's material damping does, and leaves
+the high ones; the stability limit becomes ``2 / omega_max (sqrt(1 + xi^2) - xi)``.
+
 The stability limit is measured, not guessed: ``omega_max^2`` is the largest eigenvalue of
 ``M_L^-1 K`` (K the elastic stiffness, without Dirichlet conditions, which can only lower
 it) by power iteration, its Rayleigh quotient a lower bound that the iteration closes to
@@ -66,12 +72,16 @@ class CentralDifference:
             limit.
         safety: fraction of the stability limit a substep may take, in (0, 1].
         max_substeps: refuse a step that needs more (a mistaken dt or modulus).
+        damping: mass-proportional damping alpha [1/s] (>= 0; the module docstring).
     """
 
     def __init__(self, problem: ContinuumProblem, dt: float, safety: float = 0.9,
-                 max_substeps: int = 1000):
+                 max_substeps: int = 1000, damping: float = 0.0):
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt (time step) must be a positive number in s, got {dt!r}")
+        if not (np.isfinite(damping) and damping >= 0):
+            raise ValueError(f"damping (mass-proportional, 1/s) must be >= 0, got {damping!r}")
+        self.damping = float(damping)
         if not (0 < safety <= 1):
             raise ValueError(f"safety (fraction of the stability limit) must lie in (0, 1], got {safety!r}")
         if any(d != 1 for d in problem.degree):
@@ -114,8 +124,10 @@ class CentralDifference:
 
     @property
     def critical_time_step(self) -> float:
-        """``2 / omega_max`` [s]: the longest stable substep."""
-        return 2.0 / self.omega_max
+        """``2 / omega_max (sqrt(1 + xi^2) - xi)`` [s], ``xi = damping / (2 omega_max)``: the
+        longest stable substep."""
+        xi = self.damping / (2.0 * self.omega_max)
+        return 2.0 / self.omega_max * (math.sqrt(1.0 + xi * xi) - xi)
 
     def substeps_for(self, dt: float) -> int:
         """Substeps of a step ``dt`` (each at most ``safety`` of the stability limit)."""
@@ -214,6 +226,9 @@ class CentralDifference:
                 w[fixed] = w0[fixed] + (j / k) * (end[fixed] - w0[fixed])
                 v[fixed] = rate
                 self._accelerate(a, fixed)     # the return of this substep's fields, committed
+                if self.damping:                # the damping force at the half-step velocity
+                    a -= self.damping * v
+                    a[fixed] = 0.0
                 v += 0.5 * h * a
                 if not np.isfinite(a).all():
                     raise FloatingPointError(f"CentralDifference: non-finite acceleration at "

@@ -219,6 +219,12 @@ def test_calibrated_continuum_takes_the_cell_tests_constants_and_angles():
 def test_continuum_integrator_is_named():
     with pytest.raises(ValueError, match="continuum_integrator"):
         PenetrationParameters(continuum_integrator="verlet")
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="continuum_damping must be >= 0"):
+            PenetrationParameters(continuum_integrator="explicit", continuum_damping=bad)
+    with pytest.raises(ValueError, match="continuum_damping .* the explicit continuum's"):
+        PenetrationParameters(continuum_damping=100.0)
+    assert PenetrationParameters(continuum_integrator="explicit", continuum_damping=100.0).continuum_damping == 100.0
 
 
 def test_continuum_choices_are_named():

@@ -520,7 +520,8 @@ class CoupledPenetration:
             if getattr(self.interface, "micro", None) is not None else None
         self.dt_fe = prm.substeps * self.sim.dt
         self._continuum_loads()   # (before the stepper compiles its forms)
-        self.stepper = (CentralDifference(self.problem, self.dt_fe) if prm.continuum_integrator == "explicit"
+        self.stepper = (CentralDifference(self.problem, self.dt_fe, damping=prm.continuum_damping)
+                        if prm.continuum_integrator == "explicit"
                         else GeneralizedAlpha(self.problem, self.dt_fe, rho_inf=RHO_INF))
         self.g_prev = self._ghost_motion()
         # the iterated exchange's accelerator (unused by the loose one); the last step's pairs

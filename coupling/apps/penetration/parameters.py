@@ -116,6 +116,9 @@ class PenetrationParameters:
     # differences on a lumped mass, the FE step split into substeps below the measured
     # stability limit; a plastic step is one fused return and force pass per substep, no solve)
     continuum_integrator: str = "implicit"
+    # mass-proportional damping alpha [1/s] of the explicit continuum (granfe.explicit): the
+    # far field's material damping; an undamped one rings at its fundamental mode
+    continuum_damping: float = 0.0
     # continuum = "micromorphic" (u and phi = chi - I; coupling.micro_kinematics): the packing's
     # micropolar constants (lam, mu, kappa, gamma) as the micromorphic energy
     # lam/2 tr(eps)^2 + G |eps|^2 + b/2 |sym(grad u - phi)|^2 + kappa/2 |skew(grad u - phi)|^2
@@ -212,6 +215,11 @@ class PenetrationParameters:
         if self.continuum_integrator not in ("implicit", "explicit"):
             raise ValueError(f"continuum_integrator must be 'implicit' or 'explicit', "
                              f"got {self.continuum_integrator!r}")
+        if not (np.isfinite(self.continuum_damping) and self.continuum_damping >= 0):
+            raise ValueError(f"continuum_damping must be >= 0 1/s, got {self.continuum_damping!r}")
+        if self.continuum_damping and self.continuum_integrator != "explicit":
+            raise ValueError("continuum_damping (mass-proportional) is the explicit continuum's: "
+                             f"continuum_integrator = {self.continuum_integrator!r}")
         if not (np.isfinite(self.continuum_hardening) and self.continuum_hardening >= 0):
             raise ValueError(f"continuum_hardening must be >= 0 Pa, got {self.continuum_hardening!r}")
         if not (np.isfinite(self.vertical_stress) and self.vertical_stress >= 0):

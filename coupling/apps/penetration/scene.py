@@ -95,7 +95,9 @@ class ContinuumModel:
     plasticity lets a displacement-driven window drift with its grains). ``integrator``:
     ``implicit`` (generalized-alpha) or ``explicit`` (central differences on a lumped mass,
     substepped below the measured stability limit: no solve, which makes a plastic far field
-    cheap, `granfe.explicit`). ``micromorphic``: u and the micro-deformation phi = chi - I,
+    cheap, `granfe.explicit`); ``damping`` [1/s]: the explicit continuum's mass-proportional
+    damping (its fundamental mode's damping ratio is damping / (2 omega)). ``micromorphic``:
+    u and the micro-deformation phi = chi - I,
     the elastic constants above with ``micro_stiffness`` = b / G, the stiffness of the
     symmetric relative deformation sym(grad u - phi) over the classical shear modulus (its
     limit b -> inf is the micropolar solid); phi at the window's nodes fitted to the grains'
@@ -113,6 +115,7 @@ class ContinuumModel:
     cohesion: float = parameter(P, "continuum_cohesion")
     hardening: float = parameter(P, "continuum_hardening")
     integrator: str = parameter(P, "continuum_integrator")
+    damping: float = parameter(P, "continuum_damping")
     micro_stiffness: float = parameter(P, "continuum_micro_stiffness")
 
 
