@@ -75,6 +75,9 @@ parser.add_argument("--windows", type=float, nargs="+", default=None,
                     help="DE window half widths [m] (2D 0.045 0.06 0.075, 3D 0.02 0.025)")
 parser.add_argument("--bcs", nargs="+", default=None, help="BC3 and/or BC1 (2D; 3D: BC3)")
 parser.add_argument("--seeds", type=int, default=2 if SHORT else 3, help="packings of each coupled case")
+parser.add_argument("--first-seed", type=int, default=1,
+                    help="the coupled cases' first packing (seeds first .. first + seeds - 1): packings not "
+                         "used to choose a setting (the reference always takes seeds 1 ..)")
 parser.add_argument("--reference-seeds", type=int, default=None,
                     help="packings of the full-DEM reference (default --seeds)")
 parser.add_argument("--smooth", type=float, default=0.006, help="depth window of the q_c filter [m]")
@@ -149,6 +152,8 @@ for key, two, three in (("cone_grains", 6.0, 4.0), ("depth_ratio", 0.8, 0.35),
     if getattr(args, key) is None:
         setattr(args, key, two if args.dim == 2 else three)
 
+if args.first_seed < 1 or args.seeds < 1:
+    parser.error(f"--first-seed {args.first_seed}, --seeds {args.seeds}: both >= 1")
 if args.reference_ranks < 1 or (args.reference_ranks > 1 and args.dim != 3):
     parser.error(f"--reference-ranks {args.reference_ranks}: >= 1, and above 1 only with --dim 3 "
                  f"(the full DEM distributed is the 3D chamber's)")
@@ -410,7 +415,7 @@ def comparison_noise(reference: dict, q_runs: list, embedded, scale: float, n_re
 
 
 def compare(bc: str) -> dict:
-    seeds = list(range(1, args.seeds + 1))
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     ref_seeds = list(range(1, (args.reference_seeds or args.seeds) + 1))
     if args.reference is not None:
         seed_reference(bc, ref_seeds)
