@@ -10,7 +10,11 @@ displacement (1e-5); the rest are signs and orderings of physics (a contractive 
 pushed drained and undrained), each measured with a margin (u2 9.2 kPa at V = 154 against
 34 Pa at V = 0.015); serial == 2 ranks to 1e-8 (the fluid's step before any grain moves:
 pushed, the runs part as chaotic packings do). A fluid step every 10 DEM steps, as a
-scene would take it (`fluid.every`). CPU ~30 s for the file."""
+scene would take it (`fluid.every`). The field, the balance, the cone's first push, the
+interval's forces and serial == 2 ranks also in 3D, on a small window of spheres
+(``SMALL_3D``, ~30 s to set up and push)."""
+
+from types import SimpleNamespace
 
 import dolfinx_solver  # noqa: F401
 from mpi4py import MPI
@@ -23,7 +27,7 @@ from dolfinx import fem
 from coupling.apps.penetration.coupled import CoupledPenetration
 from coupling.apps.penetration.penetrators import tip_height
 from coupling.apps.penetration.run import _set_up
-from coupling.apps.penetration.saturated import ChamberFlow, SaturatedPenetration
+from coupling.apps.penetration.saturated import ChamberFlow, SaturatedPenetration, bulk_modulus, constrained_modulus
 from coupling.scene import SceneError, load_scene
 from dem.state import FREE
 from granfe.probe import probe
@@ -37,12 +41,21 @@ SMALL = {"scene": {"name": "cptu_test", "kind": "penetration", "dimension": 2},
          "penetrator": {"radius": 0.0045, "velocity": 0.2, "depth": 0.012},
          "coupling": {"substeps": 50, "dt_factor": 4.0},
          "output": {"checkpoint_every": 0}}
+# the same in 3D: ~1500 spheres (E of quartz / 1000) round a cone of 2.5 grain radii
+SMALL_3D = {"scene": {"name": "cptu_test_3d", "kind": "penetration", "dimension": 3},
+            "chamber": {"width": 0.1, "depth": 0.07, "element_size_window": 0.008, "element_size_far": 0.03},
+            "grains": {"radius": 2.0e-3, "jitter": 0.3, "friction": 0.8, "youngs_modulus": 2.9e7,
+                       "settle_time": 0.05},
+            "window": {"half_width": 0.016, "depth": 0.03, "handshake": 1.0, "ghost_width": 2.0},
+            "penetrator": {"radius": 0.005, "velocity": 0.2, "depth": 0.006},
+            "coupling": {"substeps": 50},
+            "output": {"checkpoint_every": 0}}
 FLUID = {"enabled": True, "permeability": 1e-11, "compressibility": 1e-6,
          "saturation_time": 0.02, "every": 10}
 
 
-def scene(fluid=None, **sections):
-    data = {k: dict(v) for k, v in SMALL.items()}
+def scene(fluid=None, dim=2, **sections):
+    data = {k: dict(v) for k, v in (SMALL if dim == 2 else SMALL_3D).items()}
     for name, values in sections.items():
         data.setdefault(name, {}).update(values)
     if fluid is not None:
@@ -73,7 +86,7 @@ def test_fluid_table_names_the_bad_key(bad, named):
         scene(bad)
 
 
-def test_fluid_needs_a_2d_loose_run():
+def test_fluid_needs_a_loose_run_in_a_fixed_window():
     with pytest.raises(SceneError, match="fluid.enabled = true needs coupling.interface = 'loose'"):
         scene({}, coupling={"interface": "iqn-ils"})
     assert scene({}, output={"checkpoint_every": 5}).output.checkpoint_every == 5
@@ -81,6 +94,17 @@ def test_fluid_needs_a_2d_loose_run():
         scene({"permeabilty": 1e-11})
     assert scene({}).fluid_parameters().permeability == FLUID["permeability"]
     assert scene({"enabled": False}).fluid_parameters() is None
+    assert scene({}, dim=3).fluid_parameters().permeability == FLUID["permeability"]   # (3D too)
+
+
+def test_the_moduli_of_the_fluids_storage():
+    """The continuum's bulk modulus in its storage: lam + G in plane strain, lam + 2 G / 3 in
+    3D (G = mu + kappa / 2); the constrained modulus lam + 2 G in both."""
+    m = SimpleNamespace(lam=3.0e6, mu=2.0e6, kappa=1.0e6)
+    G = m.mu + m.kappa / 2
+    assert bulk_modulus(m, 2) == pytest.approx(m.lam + G, rel=1e-15)
+    assert bulk_modulus(m, 3) == pytest.approx(m.lam + 2 * G / 3, rel=1e-15)
+    assert constrained_modulus(m) - bulk_modulus(m, 3) == pytest.approx(4 * G / 3, rel=1e-15)
 
 
 def test_a_scene_without_fluid_builds_none():
@@ -92,10 +116,10 @@ def test_a_scene_without_fluid_builds_none():
     assert "u2" not in record and "q_t" not in record
 
 
-def run(velocity):
+def run(velocity, dim=2, **fluid):
     """The small scene saturated, pushed at ``velocity`` [m/s]; also the pressure the cone's
     first step raises in the saturated window at rest (:func:`cone_only`)."""
-    s = scene({}, penetrator={"velocity": velocity})
+    s = scene(fluid, dim, penetrator={"velocity": velocity})
     cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
     assert isinstance(cpt, SaturatedPenetration)
     first = cone_only(cpt)
@@ -115,7 +139,7 @@ def cone_only(cpt):
     out = flow.readings()
     out["p_min"] = cpt.comm.allreduce(float(flow.p.x.array.min()), op=MPI.MIN)
     tip = flow.cone_tip()
-    out["below_tip"] = float(probe(flow.p, tip - [0.0, cpt.prm.radius, 0.0])[0, 0])
+    out["below_tip"] = float(probe(flow.p, tip - cpt.prm.radius * np.eye(3)[flow.ax])[0, 0])
     flow.p.x.array[:] = saved
     return out
 
@@ -125,8 +149,39 @@ def fast():
     return run(0.2)
 
 
-def test_the_pressure_is_one_field_across_the_overlap(fast):
-    cpt, _ = fast
+@pytest.fixture(scope="module")
+def fast_3d():
+    return run(0.2, dim=3, permeability=1e-10)   # (V ~ 0.1)
+
+
+@pytest.fixture(params=[2, 3], ids=["2d", "3d"])
+def pushed(request):
+    """The small scene's push, 2D and 3D."""
+    return request.getfixturevalue("fast" if request.param == 2 else "fast_3d")
+
+
+def test_the_penetrators_body_is_solid_to_the_fluid():
+    """The points carrying the penetrator's solid into the fluid fill its section (2D: a grid
+    cell's area each, within 2 % of the cone and shaft's area) or its body (3D: its volume
+    over their count, pi R^2 (L + h / 3) exactly), inside its outline."""
+    for dim in (2, 3):
+        s = scene({}, dim)
+        prm = s.parameters()
+        flow = SimpleNamespace(cpt=SimpleNamespace(prm=prm), gdim=dim)
+        x, each = ChamberFlow._cone_points(flow)
+        R, h = prm.cone_radius, tip_height(prm)
+        top = h + prm.depth + 2 * R
+        ax = dim - 1
+        across = np.linalg.norm(x[:, :ax], axis=1)
+        assert np.all(across <= R) and np.all(x[:, ax] >= across * h / R) and np.all(x[:, ax] <= top)
+        if dim == 2:
+            assert len(x) * each == pytest.approx(2 * R * (top - h) + R * h, rel=0.02)
+        else:
+            assert len(x) * each == pytest.approx(np.pi * R**2 * (top - h + h / 3), rel=1e-12)
+
+
+def test_the_pressure_is_one_field_across_the_overlap(pushed):
+    cpt, _ = pushed
     flow = cpt.flow
     # one continuous P1 field on the continuum's own mesh, over the whole chamber
     assert flow.p.function_space.mesh is cpt.problem.domain
@@ -135,7 +190,7 @@ def test_the_pressure_is_one_field_across_the_overlap(fast):
     w = flow.weight.x.array
     assert w.min() == 0.0 and w.max() == 1.0 and np.any((w > 0) & (w < 1))   # the blend
     # the weight is the coupling's: 1 wherever the grains prescribe the continuum's nodes
-    X = flow.Vn.tabulate_dof_coordinates()[:, :2]
+    X = flow.Vn.tabulate_dof_coordinates()[:, :cpt.prm.dim]
     assert np.all(w[cpt.regions.prescribed_nodes(X)] == 1.0)
     # and 0 beyond the ghost band, where no grain is
     reach = cpt.regions.window.signed_distance(X) > cpt.prm.ghost_width * 2 * cpt.prm.radius
@@ -146,11 +201,11 @@ def test_the_pressure_is_one_field_across_the_overlap(fast):
     assert comm.allreduce(float(np.abs(p[w == 0]).max(initial=0.0)), op=MPI.MAX) > 1.0
 
 
-def test_the_fluid_balances_through_the_drained_surface(fast):
+def test_the_fluid_balances_through_the_drained_surface(pushed):
     """The weak form tested with q = 1: what enters through the drained top is what the
     storage (n beta_f, and (1 - w) / K with a drained continuum) took in the step (no-flux
     elsewhere, and the source's int v . grad 1 = 0)."""
-    cpt, _ = fast
+    cpt, _ = pushed
     flow = cpt.flow
     dt = cpt.fluid.every * cpt.sim.dt
     storage = flow.params.compressibility * flow.porosity
@@ -164,13 +219,13 @@ def test_the_fluid_balances_through_the_drained_surface(fast):
     assert abs(inflow - stored) < 1e-8 * scale
 
 
-def test_the_cone_alone_raises_a_positive_pressure_pushing_it_back(fast):
+def test_the_cone_alone_raises_a_positive_pressure_pushing_it_back(pushed):
     """The cone's solid moving down into grains at rest: the solid velocity converges at its
     faces (a positive source; where the grains' share of a cell varies the blended velocity
     diverges a little too, so p is not positive everywhere: measured 1830 Pa at most, -278
-    Pa at least), the top drained and the other sides closed: the pressure is largest below
-    the tip, positive there, and its push on the cone is up."""
-    cpt, first = fast
+    Pa at least; 3D 112 / -6 Pa), the top drained and the other sides closed: the pressure
+    is largest below the tip, positive there, and its push on the cone is up."""
+    cpt, first = pushed
     assert first["u_max"] > 0 and first["u_max"] > 2 * abs(first["p_min"])
     assert first["below_tip"] > 0
     assert first["q_u"] > 0
@@ -250,8 +305,8 @@ def test_a_chambers_surcharge_stays_beside_the_fluids_forces(fast):
     np.testing.assert_allclose(f[at], flow.forces[top] + load, rtol=1e-12, atol=1e-15)
 
 
-@pytest.mark.parametrize("k", [1e-11, 1e-22])
-def test_the_interval_force_is_the_next_fluid_steps_response(k):
+@pytest.mark.parametrize("dim, k", [(2, 1e-11), (2, 1e-22), (3, 1e-11)])
+def test_the_interval_force_is_the_next_fluid_steps_response(dim, k):
     """With a fluid step every few DEM steps the grains take, at every DEM step between,
     the force change their displacement du since the last fluid step makes
     (`ChamberFlow.interval_forces`): it is the next fluid step's response to du (the
@@ -260,8 +315,9 @@ def test_the_interval_force_is_the_next_fluid_steps_response(k):
     with the grains' positions in the forces (du 1e-9 m: 6e-7 measured); the same with flow
     (k = 1e-11) and undrained (k -> 0, where it is the fluid's storage stiffness alone).
     It resists a compaction (negative work). With the grains still, the interval's
-    pressure change at its end is the next step's drainage of the last pressure."""
-    s = scene({"saturation_time": 0.0, "every": 10})
+    pressure change at its end is the next step's drainage of the last pressure. 2D and
+    3D."""
+    s = scene({"saturation_time": 0.0, "every": 10}, dim)
     cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
     flow, sim = cpt.flow, cpt.sim
     assert flow.drag is None      # (every > 1: the interval's forces, no group drag)
@@ -283,11 +339,11 @@ def test_the_interval_force_is_the_next_fluid_steps_response(k):
     # drainage would join du's own response)
     flow.p.x.array[:] = 0.0
     x0, p0 = sim.p.x.copy(), flow.p.x.array.copy()
-    window = flow._grain_weight(x0[:cpt.n_grains, :2]) >= 1.0
+    window = flow._grain_weight(x0[:cpt.n_grains, :dim]) >= 1.0
     inner = np.flatnonzero(window & (sim.p.kind[:cpt.n_grains] == FREE))
-    r = x0[inner, :2] - x0[inner, :2].mean(axis=0)
+    r = x0[inner, :dim] - x0[inner, :dim].mean(axis=0)
     du = np.zeros_like(x0)
-    du[inner, :2] = -1e-9 * r / 0.01 * np.exp(-(r**2).sum(axis=1) / 0.01**2)[:, None]   # a compaction
+    du[inner, :dim] = -1e-9 * r / 0.01 * np.exp(-(r**2).sum(axis=1) / 0.01**2)[:, None]   # a compaction
 
     def next_step(x):
         sim.p.x[:] = x
@@ -337,13 +393,14 @@ def test_a_grain_outside_the_window_takes_no_seepage_force():
 
 
 @pytest.mark.mpi
-def test_ranks_equal_serial():
+@pytest.mark.parametrize("dim", [2, 3])
+def test_ranks_equal_serial(dim):
     """The saturated window's fluid (no saturation time: the same grains on every rank count):
     the cone-only step's readings and every grain's fluid force on all ranks equal a COMM_SELF
     run to round-off. (Pushed, the runs part: the grains' fluid forces are summed over the
     ranks in another order and the packings are chaotic; measured 5e-4 relative in the
-    grains' forces after 100 DEM steps.)"""
-    s = scene({"saturation_time": 0.0})
+    grains' forces after 100 DEM steps.) 2D and 3D."""
+    s = scene({"saturation_time": 0.0}, dim)
 
     def build(comm):
         cpt = _set_up(s.parameters(), comm, quiet, None, None, None, s.fluid_parameters())
@@ -377,6 +434,31 @@ def test_interval_forces_ranks_equal_serial():
     np.testing.assert_allclose(ranks, serial, rtol=0, atol=1e-8 * np.abs(serial).max())
 
 
+def response_equals_interval_forces(dim):
+    """The DEM's linear response at the k-th DEM step after a fluid step adds
+    ``interval_forces(k dt)`` (to 1e-9 of it)."""
+    s = scene({"saturation_time": 0.0, "every": 10}, dim)
+    cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
+    flow, sim = cpt.flow, cpt.sim
+    flow.step(cpt.fluid.every * sim.dt)
+    rng = np.random.default_rng(5)
+    free = np.flatnonzero(sim.p.kind[:cpt.n_grains] == FREE)
+    sim.p.x[free, :dim] += 1e-7 * rng.standard_normal((len(free), dim))
+    response = flow.interval_response()
+    rows = response.rows
+    for k in (1, 2, 3):
+        response.apply(sim)
+        f = flow.interval_forces(k * sim.dt)[rows]
+        f[sim.p.kind[rows] != FREE] = 0.0
+        assert np.abs(f).max() > 0
+        np.testing.assert_allclose(response.force, f, rtol=0, atol=1e-9 * np.abs(f).max())
+    response.withdraw(sim)
+
+
+def test_the_dems_response_is_the_interval_forces_in_3d():
+    response_equals_interval_forces(3)
+
+
 @pytest.mark.parametrize("stride", [1, 2])
 def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch, stride):
     """On one rank the DEM steps between fluid steps take the interval's forces as the DEM's
@@ -387,21 +469,7 @@ def test_the_dem_takes_the_interval_response_in_its_fused_loop(monkeypatch, stri
     the same, grown by the chaotic packing over 3 FE steps (1e-6 of q_c), also with the
     forces' impulse once in 2 DEM steps (``fluid.response_every``, the stride; this small
     window's step takes no more: s dt omega 0.39)."""
-    s = scene({"saturation_time": 0.0, "every": 10})
-    cpt = _set_up(s.parameters(), MPI.COMM_WORLD, quiet, None, None, None, s.fluid_parameters())
-    flow, sim = cpt.flow, cpt.sim
-    flow.step(cpt.fluid.every * sim.dt)
-    rng = np.random.default_rng(5)
-    free = np.flatnonzero(sim.p.kind[:cpt.n_grains] == FREE)
-    sim.p.x[free, :2] += 1e-7 * rng.standard_normal((len(free), 2))
-    response = flow.interval_response()
-    rows = response.rows
-    for k in (1, 2, 3):
-        response.apply(sim)
-        f = flow.interval_forces(k * sim.dt)[rows]
-        f[sim.p.kind[rows] != FREE] = 0.0
-        np.testing.assert_allclose(response.force, f, rtol=0, atol=1e-9 * np.abs(f).max())
-    response.withdraw(sim)
+    response_equals_interval_forces(2)
 
     def push(hooked):
         s = scene({"every": 10, "response_every": stride})

@@ -130,15 +130,24 @@ COVERED = 0.5
 POROSITY_SPACE = "P1"
 
 
-def bulk_modulus_2d(material) -> float:
-    """Plane-strain bulk modulus ``lam + G`` [Pa] of a micropolar material, G = mu + kappa / 2
-    its classical shear modulus."""
-    return material.lam + material.mu + 0.5 * material.kappa
+def bulk_modulus(material, dim: int) -> float:
+    """Bulk modulus [Pa] of a micropolar material: ``lam + G`` in plane strain (dim 2),
+    ``lam + 2 G / 3`` in 3D; G = mu + kappa / 2 its classical shear modulus."""
+    G = material.mu + 0.5 * material.kappa
+    return material.lam + (G if dim == 2 else 2.0 * G / 3.0)
 
 
-def constrained_modulus_2d(material) -> float:
-    """Constrained (oedometric) modulus ``lam + 2 G`` [Pa]."""
+def constrained_modulus(material) -> float:
+    """Constrained (oedometric) modulus ``lam + 2 G`` [Pa] (2D and 3D)."""
     return material.lam + 2 * material.mu + material.kappa
+
+
+def radial_directions(dim: int) -> np.ndarray:
+    """Unit vectors (k, 3) across the penetrator's axis where its readings are taken: both
+    sides of the 2D section (x), four azimuths in 3D (x and y)."""
+    if dim == 2:
+        return np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    return np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
 
 
 class ChamberFlow(DarcyFlow):
@@ -150,9 +159,9 @@ class ChamberFlow(DarcyFlow):
 
     def __init__(self, cpt: CoupledPenetration, fluid: FluidParameters):
         prm = cpt.prm
-        if prm.dim != 2:
-            raise ValueError(f"a saturated penetration is 2D so far, got dim = {prm.dim}")
         self.cpt, self.fluid_prm = cpt, fluid
+        #: the space dimension and the penetrator's (vertical) axis
+        self.gdim, self.ax = prm.dim, VERTICAL[prm.dim]
         params = PoreFluidParameters(viscosity=fluid.viscosity, compressibility=fluid.compressibility,
                                      density=fluid.density, permeability=fluid.permeability,
                                      porosity_space=POROSITY_SPACE, porosity_min=0.02, porosity_max=0.98,
@@ -168,7 +177,7 @@ class ChamberFlow(DarcyFlow):
         if len(rows):                        # (the DEM holds one set of external forces)
             self.extra_force = np.zeros((cpt.sim.p.n, 3))
             self.extra_force[rows] = f
-        domain, gdim = self.domain, 2
+        domain, gdim = self.domain, self.gdim
         self.weight = fem.Function(self.Vn, name="grain_weight")
         self.weight.x.array[:] = self._grain_weight(self.Vn.tabulate_dof_coordinates()[:, :gdim])
         self.cone_fraction = fem.Function(self.Vn, name="cone_fraction")
@@ -180,8 +189,8 @@ class ChamberFlow(DarcyFlow):
         self._k = fem.Constant(domain, default_scalar_type(fluid.permeability))
         #: the penetrator's speed [m/s] the fluid sees (0 while the window saturates)
         self.cone_speed = prm.velocity
-        self.K = bulk_modulus_2d(cpt.material_fe)
-        self.M = constrained_modulus_2d(cpt.material_fe)
+        self.K = bulk_modulus(cpt.material_fe, gdim)
+        self.M = constrained_modulus(cpt.material_fe)
         self.skeleton_storage = (1.0 - self.weight) / self.K
         #: continuum = "biot": 1 on the nodes where the continuum alone is the skeleton (w = 0),
         #: 0 in the overlap; the continuum is Biot's there, its own step answering its volume
@@ -198,7 +207,7 @@ class ChamberFlow(DarcyFlow):
         if not np.array_equal(self._cone.space.V.dofmap.list, self.Vn.dofmap.list):
             raise RuntimeError("the penetrator's space does not number the grains' dofs alike")
         self._probes = _Tracked(domain, self.Vp.ufl_element(), self._maps, self._tree)
-        self._cone_template, self._cone_area = self._cone_points()
+        self._cone_template, self._cone_area = self._cone_points()   # (area: volume in 3D)
         self.cone_force = np.zeros(3)   #: the pore pressure's force on the penetrator [N/m]
         w = self.weight.x.array
         solid = self._work("solid", self.Vn).x.array
@@ -225,7 +234,7 @@ class ChamberFlow(DarcyFlow):
 
     # ---- where the grains count ------------------------------------------------------------
     def _grain_weight(self, x: np.ndarray) -> np.ndarray:
-        """The grains' weight w (m,) at points x (m, 2): 1 at signed distance -handshake
+        """The grains' weight w (m,) at points x (m, gdim): 1 at signed distance -handshake
         from the window (the coupling's prescribed nodes), 0 an element inside the ghost
         band's outer edge, linear between (a node's P1 porosity averages its support, an
         element about it)."""
@@ -241,18 +250,26 @@ class ChamberFlow(DarcyFlow):
         return np.clip((d1 - d) / (d1 - d0), 0.0, 1.0)
 
     def _cone_points(self):
-        """Points (k, 3) filling the penetrator's section (its tip at the origin: the clump's
-        placement at depth 0 is added per solve) and the area each carries [m^2]."""
+        """Points (k, 3) filling the penetrator (its section in 2D, its body in 3D; its tip at
+        the origin: the clump's placement is added per solve) on a grid of half a grain
+        radius, and the area (2D, m^2) or volume (3D, m^3) each carries: in 2D a grid cell's
+        (their sum within 1.6 % of the section's area in the scenes), in 3D the body's volume
+        over their count (a cone of 2.5 grain radii fills its grid's cells to 3.5 %)."""
         prm = self.cpt.prm
         R, h_cone = prm.cone_radius, tip_height(prm)
         s = 0.5 * prm.radius
         top = h_cone + prm.depth + 2 * R
-        xs = np.arange(-R + s / 2, R, s)
-        ys = np.arange(s / 2, top, s)
-        X, Y = np.meshgrid(xs, ys)
-        inside = Y >= np.abs(X) * h_cone / R
-        pts = np.column_stack([X[inside], Y[inside], np.zeros(inside.sum())])
-        return pts, s * s
+        across = np.arange(-R + s / 2, R, s)
+        up = np.arange(s / 2, top, s)
+        if self.gdim == 2:
+            X, Y = np.meshgrid(across, up)
+            inside = Y >= np.abs(X) * h_cone / R
+            return np.column_stack([X[inside], Y[inside], np.zeros(inside.sum())]), s * s
+        X, Y, Z = np.meshgrid(across, across, up, indexing="ij")
+        r = np.hypot(X, Y)
+        inside = (r <= R) & (Z >= r * h_cone / R)
+        volume = np.pi * R**2 * (top - h_cone + h_cone / 3)   # (the shaft, and the cone's third)
+        return np.column_stack([X[inside], Y[inside], Z[inside]]), volume / inside.sum()
 
     def cone_tip(self) -> np.ndarray:
         """(3,) the cone's apex now [m], from the clump's disks where the DEM has them (also
@@ -264,38 +281,40 @@ class ChamberFlow(DarcyFlow):
         r_pen = float(cpt.sim.p.radius[cpt.pen_index[0]])
         tip = np.zeros(3)
         tip[ax] = pen[:, ax].min() - r_pen / np.sin(np.radians(prm.apex_deg) / 2)
-        tip[0] = float(np.mean(pen[:, 0]))
+        for c in range(prm.dim):   # (the axis across: x in 2D, x and y in 3D)
+            if c != ax:
+                tip[c] = float(np.mean(pen[:, c]))
         return tip
 
     def _penetrator_sums(self):
-        """(S_c, sum of area times velocity) (m,), (m, 2) of the penetrator's section on Vn
-        (its points above the surface carry nothing)."""
-        prm, surface = self.cpt.prm, self.cpt.surface
+        """(S_c, sum of area times velocity) (m,), (m, gdim) of the penetrator's section (2D)
+        or body (3D) on Vn (its points above the surface carry nothing)."""
+        prm, surface, ax, gdim = self.cpt.prm, self.cpt.surface, self.ax, self.gdim
         x = self._cone_template + self.cone_tip()
-        area = np.where(x[:, 1] < surface, self._cone_area, 0.0)
-        np.minimum(x[:, 1], surface - 1e-6 * prm.radius, out=x[:, 1])
+        area = np.where(x[:, ax] < surface, self._cone_area, 0.0)
+        np.minimum(x[:, ax], surface - 1e-6 * prm.radius, out=x[:, ax])
         S = self._work("cone_solid", self.Vn)
         SV = self._work("cone_momentum", self.Vv)
-        mine = self._cone.locate(x[:, :2])
+        mine = self._cone.locate(x[:, :gdim])
         self._cone.space.sum_to(area[mine], S)
-        v = np.zeros((len(mine), 2))
-        v[:, VERTICAL[prm.dim]] = -self.cone_speed
+        v = np.zeros((len(mine), gdim))
+        v[:, ax] = -self.cone_speed
         self._cone.space.sum_to(area[mine, None] * v, SV)
-        return S.x.array, SV.x.array.reshape(-1, 2)
+        return S.x.array, SV.x.array.reshape(-1, gdim)
 
     # ---- grains and continuum -> mesh -----------------------------------------------------
     def positions(self) -> np.ndarray:
         """The grains' centroids, those heaved above the mesh (which ends at the settled
         surface) binned at its top: a heave of a grain or two, which the top cells take."""
         x = super().positions().copy()
-        np.minimum(x[:, 1], self.cpt.surface - 1e-6 * self.cpt.prm.radius, out=x[:, 1])
+        np.minimum(x[:, self.ax], self.cpt.surface - 1e-6 * self.cpt.prm.radius, out=x[:, self.ax])
         return x
 
     def update_from_grains(self) -> None:
         """Porosity and solid velocity on the mesh: the grains' and the penetrator's, weighted
         by w, and the continuum's (n_0, its velocity) by 1 - w (collective)."""
         super().update_from_grains()
-        gdim = 2
+        gdim = self.gdim
         solid = self._work("solid", self.Vn).x.array   # sum_i V_i N_a(x_i): the grains'
         x = self.sim.p.x[:self.particles]
         self._rate = None
@@ -389,7 +408,7 @@ class ChamberFlow(DarcyFlow):
         Held over the interval the fluid's forces lag the grains by a fluid step: at every
         DEM step this brings them the fluid's stiffness and its Darcy resistance, so the
         fluid needs no implicit drag (collective; the same on every rank)."""
-        gdim, mine = 2, self._mine
+        gdim, mine = self.gdim, self._mine
         if len(mine) == self.particles:   # (one rank: all of them, in order; a slice's views)
             mine = slice(0, self.particles)
         moved = self.sim.p.x[mine, :gdim] - self._x_last[mine, :gdim]
@@ -398,8 +417,8 @@ class ChamberFlow(DarcyFlow):
         out = np.zeros((self.sim.p.n, 3))
         ops = self._serial
         if ops is not None:
-            if "to_source" not in ops:   # (grain rows i of (m, 2) arrays ravel to 2 i + c)
-                N, two = self._grains.matrix(), sparse.identity(2, format="csr")
+            if "to_source" not in ops:   # (grain rows i of (m, gdim) arrays ravel to gdim i + c)
+                N, two = self._grains.matrix(), sparse.identity(gdim, format="csr")
                 V = sparse.diags(self.volume[mine])
                 scatter = V @ N.T @ sparse.diags(self.weight.x.array / self._share)
                 ops["to_source"] = (ops["source"] @ sparse.kron(
@@ -446,13 +465,15 @@ class ChamberFlow(DarcyFlow):
         mass = p.mass[free, None]
         scale = 1e-6 * self.d
 
+        gdim = self.gdim
+
         def force(v):
-            p.x[free, :2] = self._x_last[free, :2] + v
-            return self.interval_forces(self.sim.dt)[free, :2]
+            p.x[free, :gdim] = self._x_last[free, :gdim] + v
+            return self.interval_forces(self.sim.dt)[free, :gdim]
 
         try:
             base = force(0.0)
-            v = np.random.default_rng(0).standard_normal((len(free), 2))
+            v = np.random.default_rng(0).standard_normal((len(free), gdim))
             lam = 0.0
             for _ in range(iterations):
                 v *= scale / np.linalg.norm(v)
@@ -482,7 +503,7 @@ class ChamberFlow(DarcyFlow):
                 keep[bc.dof_indices()[0]] = 0.0
             ops["keep"], ops["kept_source"] = keep, (sparse.diags(keep) @ ops["source"]).tocsr()
         drift = ops["keep"] * self._flow_of_last * (self.sim.dt / self._step_dt)
-        rows, x_ref = self._mine, self._x_last[self._mine, :2]
+        rows, x_ref = self._mine, self._x_last[self._mine, :self.gdim]
         # (the mesh's operators and the grains' basis rows: fewer entries than their products;
         # the step's own factors, :meth:`_linear_solve`'s)
         ldl = self._ldl
@@ -499,7 +520,7 @@ class ChamberFlow(DarcyFlow):
         dropped: its mechanics are drained there), and outside the window a grain that strays
         there takes none (it took the whole node's, the continuum's, before)."""
         g = super()._seepage_per_volume()
-        g.x.array.reshape(-1, 2)[:] *= self.weight.x.array[:, None]
+        g.x.array.reshape(-1, self.gdim)[:] *= self.weight.x.array[:, None]
         return g
 
     def permeability(self):
@@ -555,12 +576,13 @@ class ChamberFlow(DarcyFlow):
         if self.drag is not None and self._rate is not None:
             self.drag.u_ref[:] = group_means(self._rate, self.drag.group, self.volume,
                                              len(self.drag.u_ref))
-        F = self.nodal_force.x.array.reshape(-1, 2)     # (set by the grains' forces just now)
+        gdim = self.gdim
+        F = self.nodal_force.x.array.reshape(-1, gdim)  # (set by the grains' forces just now)
         floor = (1.0 - self.params.porosity_max) * self.lumped_mass
         share = np.maximum(self._work("solid", self.Vn).x.array, floor)
         f = F * (self._cone_sums[0] / share)[:, None]
         owned = self.Vn.dofmap.index_map.size_local
-        self.cone_force[:2] = self.domain.comm.allreduce(f[:owned].sum(axis=0))
+        self.cone_force[:gdim] = self.domain.comm.allreduce(f[:owned].sum(axis=0))
 
     # ---- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -612,24 +634,28 @@ class ChamberFlow(DarcyFlow):
     # ---- readings -------------------------------------------------------------------------
     def readings(self) -> dict:
         """u1, u2 [Pa] (excess pore pressures on the face and at the shoulder, a grain radius
-        out; 0 above the surface, which is drained), the largest excess pressure, and the
-        pressure's push on the cone over its width q_u [Pa] (collective)."""
-        prm, cpt = self.cpt.prm, self.cpt
+        out, averaged over both sides of the section (2D) or four azimuths (3D); 0 above the
+        surface, which is drained), the largest excess pressure, and the pressure's push on
+        the cone over its projected area q_u [Pa] (2 R in 2D, pi R^2 in 3D; collective)."""
+        prm, cpt, ax, gdim = self.cpt.prm, self.cpt, self.ax, self.gdim
         tip, R, h_cone, r = self.cone_tip(), prm.cone_radius, tip_height(prm), prm.radius
         half = np.radians(prm.apex_deg) / 2
-        normal = np.array([np.cos(half), -np.sin(half)])   # the right face's outward normal
-        face = np.array([R / 2, h_cone / 2]) + r * normal
-        pts = {"u1": [face * (-1, 1), face], "u2": [(-R - r, h_cone + r), (R + r, h_cone + r)]}
-        x = np.vstack([pts["u1"], pts["u2"]]) + tip[:2]
-        below = x[:, 1] < cpt.surface      # (the surface is drained: 0 above it)
-        np.minimum(x[:, 1], cpt.surface - 1e-6 * r, out=x[:, 1])
+        up = np.eye(3)[ax]
+        out_ = radial_directions(gdim)   # (the faces' outward normal: cos half out, sin half down)
+        face = (R / 2 + r * np.cos(half)) * out_ + (h_cone / 2 - r * np.sin(half)) * up
+        shoulder = (R + r) * out_ + (h_cone + r) * up
+        k = len(out_)
+        x = (np.vstack([face, shoulder]) + tip)[:, :gdim]
+        below = x[:, ax] < cpt.surface      # (the surface is drained: 0 above it)
+        np.minimum(x[:, ax], cpt.surface - 1e-6 * r, out=x[:, ax])
         mine = self._probes.locate(x)
         vals = np.zeros(len(x))
         vals[mine] = self._probes.space.at_grains(self.p)[:, 0]
         vals = self.domain.comm.allreduce(vals) * below
-        out = {"u1": float(vals[:2].mean()), "u2": float(vals[2:].mean())}
+        out = {"u1": float(vals[:k].mean()), "u2": float(vals[k:].mean())}
         out["u_max"] = self.domain.comm.allreduce(float(self.p.x.array.max(initial=0.0)), op=MPI.MAX)
-        out["q_u"] = float(self.cone_force[1] / (2 * R))
+        area = 2 * R if gdim == 2 else np.pi * R**2
+        out["q_u"] = float(self.cone_force[ax] / area)
         return out
 
 

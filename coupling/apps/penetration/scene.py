@@ -177,7 +177,7 @@ class Follow:
 @dataclass(frozen=True)
 class Fluid:
     """A Darcy pore fluid through the window's grains and the chamber (:mod:`coupling.apps.
-    penetration.saturated`; 2D, loose exchange, checkpoints with the fluid's state): off unless ``enabled``.
+    penetration.saturated`; 2D and 3D, loose exchange, checkpoints with the fluid's state): off unless ``enabled``.
     ``permeability`` [m^2] (constant), ``viscosity`` [Pa s], ``compressibility`` [1/Pa],
     ``density`` [kg/m^3], ``saturation_time`` [s] the window takes its buoyancy before the
     push, ``every``: DEM steps per fluid step (dividing ``coupling.substeps``),
@@ -258,13 +258,12 @@ class PenetrationScene(_Tables):
             fluid = F(**parameter_values(self, F))
         except ValueError as err:
             raise SceneError(_named(str(err), parameter_keys(self, F))) from None
-        needs = {"scene.dimension = 2": self.scene.dimension == 2,
-                 "coupling.interface = 'loose'": self.coupling.interface == "loose",
+        needs = {"coupling.interface = 'loose'": self.coupling.interface == "loose",
                  "follow.enabled = false": not self.follow.enabled}
         for need, ok in needs.items():
             if not ok:
-                raise SceneError(f"fluid.enabled = true needs {need} (a saturated penetration is "
-                                 "2D, exchanges loosely and keeps its window so far)")
+                raise SceneError(f"fluid.enabled = true needs {need} (a saturated penetration "
+                                 "exchanges loosely and keeps its window so far)")
         if self.coupling.substeps % fluid.every:
             raise SceneError(f"fluid.every = {fluid.every} DEM steps must divide coupling.substeps "
                              f"= {self.coupling.substeps}")
