@@ -34,6 +34,7 @@ DEMOS = [
     ("demos/3d/micromorphic_plastic_triaxial.py", True),
     ("demos/3d/micromorphic_finite_plastic_compression.py", True),
     ("demos/3d/sheared_till.py", False),
+    ("demos/3d/cptu_coupled.py", False),
     ("demos/3d/seed004_stress_paths.py", False),
     ("demos/3d/fe2_triaxial.py", True),
 ]

@@ -10,10 +10,14 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-__all__ = ["CONTINUA", "FluidParameters"]
+__all__ = ["BIOT_3D", "CONTINUA", "FluidParameters"]
 
 #: how the continuum takes the pore pressure (:attr:`FluidParameters.continuum`)
 CONTINUA = ("biot", "drained")
+#: why a 3D saturated penetration keeps the dry continuum (the scene's and the run's error)
+BIOT_3D = ("fluid.continuum = 'biot' is 2D so far: in 3D its P1 pressure increment rang at the chamber's "
+           "fixed side wall and grew (scenes/cptu_3d.toml: 2 to 82 kPa in 40 FE steps, then the run blew "
+           "up); use fluid.continuum = 'drained'")
 
 
 @dataclass(frozen=True)

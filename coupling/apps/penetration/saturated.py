@@ -35,7 +35,8 @@ stress beyond the overlap: its FE step is `granfe.models.undrained_split.Undrain
 from the last fluid step's pressure; the skeleton pushed by ``-b grad(p)``), and the fluid
 steps after it take the continuum's displacement change over the step as its source ``v_FE``.
 Undrained it deforms nearly isochorically, drained as the dry continuum
-(tests/coupling/test_cptu.py). In the overlap (0 < w < 1, b = 0) its mechanics stay drained:
+(tests/coupling/test_cptu.py); 2D only so far (3D: :data:`BIOT_3D`). In the overlap
+(0 < w < 1, b = 0) its mechanics stay drained:
 the grains take the seepage force by w, the continuum's share is dropped, and its volume
 change enters with the fixed-stress storage ``(1 - w) / K`` (K its plane-strain bulk
 modulus). With the Biot continuum there too (b = 1 - w) the coupled chamber blew up
@@ -76,7 +77,9 @@ free layer 0.23 / 0.05 / -0.01 kPa over 22-45 mm in three packings). The shoulde
 grain radius into the grains after ~38 mm of push in the loose scene
 (demos/2d/cptu_coupled.py pushes 45 mm).
 
-2D, one rank or several (the grains replicated, the fluid's sums reduced as in DarcyFlow).
+2D and 3D (the penetrator's body filled with points, u1 / u2 at four azimuths, q_u over
+pi R^2; the continuum drained), one rank or several (the grains replicated, the fluid's sums
+reduced as in DarcyFlow).
 """
 
 from __future__ import annotations
@@ -96,7 +99,7 @@ from dolfinx.fem.petsc import apply_lifting, assemble_matrix, assemble_vector
 from scipy import sparse
 
 from coupling.apps.penetration.coupled import RHO_INF, CoupledPenetration
-from coupling.apps.penetration.fluid import FluidParameters
+from coupling.apps.penetration.fluid import BIOT_3D, FluidParameters
 from coupling.apps.penetration.parameters import VERTICAL
 from coupling.apps.penetration.penetrators import tip_height
 from coupling.locate import locate_owned, owner_ranks, relocate
@@ -751,6 +754,8 @@ class SaturatedPenetration(CoupledPenetration):
         if not model.linear:
             raise ValueError(f"fluid.continuum = 'biot' takes an elastic continuum so far, got "
                              f"continuum.model = {self.prm.continuum!r} (or fluid.continuum = 'drained')")
+        if self.prm.dim != 2:
+            raise ValueError(BIOT_3D)
         return UndrainedSplit(model, storage=0.5 * self.fluid.compressibility,   # (n0's, once measured)
                               mobility=self.fluid.permeability / self.fluid.viscosity)
 

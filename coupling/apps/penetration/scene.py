@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from coupling.apps.penetration.fluid import BIOT_3D
 from coupling.apps.penetration.fluid import FluidParameters as F
 from coupling.apps.penetration.parameters import MovingWindowParameters as M
 from coupling.apps.penetration.parameters import PenetrationParameters as P
@@ -268,6 +269,8 @@ class PenetrationScene(_Tables):
             raise SceneError(f"fluid.every = {fluid.every} DEM steps must divide coupling.substeps "
                              f"= {self.coupling.substeps}")
         prm = self.parameters()
+        if fluid.continuum == "biot" and prm.dim != 2:
+            raise SceneError(BIOT_3D)
         if fluid.continuum == "biot" and (prm.continuum_integrator != "implicit" or prm.continuum != "micropolar"):
             raise SceneError(f"fluid.continuum = 'biot' takes the implicit micropolar continuum so far "
                              f"(continuum.integrator = {prm.continuum_integrator!r}, continuum.model = "
