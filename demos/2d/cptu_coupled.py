@@ -96,8 +96,13 @@ SMALL = {"chamber": {"width": 0.16, "depth": 0.12, "element_size_window": 0.008,
          "grains": {"settle_time": 0.15}, "window": {"half_width": 0.025, "depth": 0.045, "handshake": 1.0},
          "penetrator": {"radius": 0.0045}, "coupling": {"dt_factor": 4.0},
          "fluid": {"every": 10, "response_every": 1}}   # (at the 4x step dt omega ~ 0.2: every step)
+# short in 3D: ~2000 spheres round a cone of 2.5 grain radii, 16 mm of push
+SMALL_3D = {"chamber": {"width": 0.1, "depth": 0.07, "element_size_far": 0.03},
+            "grains": {"settle_time": 0.05}, "window": {"half_width": 0.016, "depth": 0.04},
+            "penetrator": {"radius": 0.005, "depth": 0.016}, "coupling": {"relaxation": 0.3},
+            "fluid": {"permeability": 1e-10, "every": 10, "saturation_time": 0.01}}
 dim = load_scene(args.scene).scene.dimension
-overrides = SMALL if SHORT and dim == 2 else {}   # (the 3D scene is small: short runs fewer cases)
+overrides = (SMALL if dim == 2 else SMALL_3D) if SHORT else {}
 if args.seed is not None:
     overrides = {**overrides, "grains": {**overrides.get("grains", {}), "seed": args.seed}}
 scene = load_scene(args.scene, overrides)
@@ -125,7 +130,7 @@ runs = {"dry": (None, args.fast),
 # 3D: no undrained run by default. The pressure is one P1 field on the continuum's mesh, whose
 # elements must hold several grains: the 3D cone is about one element wide, and undrained the
 # pressure's error round it (of order (mu_f / k)(v / R) h^2, saturated.py) outgrows the
-# effective stress: in scenes/cptu_3d.toml at V = 80 u_max climbed 5 -> 250 kPa over 11 mm of
+# effective stress: in the short 3D scene (GRANFE_SHORT=1) at V = 80 u_max climbed 5 -> 250 kPa over 11 mm of
 # push and grains left at 15 m/s (the cone at 0.2 m/s), with the interval's forces at every DEM
 # step as with once in 5. --runs undrained still runs it.
 default = (["dry", "drained", "undrained"] if dim == 2 else ["dry", "drained", "fast"]) if SHORT else \
