@@ -38,8 +38,8 @@ Undrained it deforms nearly isochorically, drained as the dry continuum
 (tests/coupling/test_cptu.py); 2D only so far (3D: :data:`BIOT_3D`). In the overlap
 (0 < w < 1, b = 0) its mechanics stay drained:
 the grains take the seepage force by w, the continuum's share is dropped, and its volume
-change enters with the fixed-stress storage ``(1 - w) / K`` (K its plane-strain bulk
-modulus). With the Biot continuum there too (b = 1 - w) the coupled chamber blew up
+change enters with the fixed-stress storage ``(1 - w) / K`` (K its bulk modulus, plane
+strain in 2D). With the Biot continuum there too (b = 1 - w) the coupled chamber blew up
 undrained (V = 32, the 2D CPTu scene): the continuum's undrained resistance to the grains'
 own volume changes at the prescribed nodes came back through the ghosts.
 ``fluid.continuum = "drained"``: the dry continuum everywhere, its volume change the source
@@ -211,7 +211,7 @@ class ChamberFlow(DarcyFlow):
             raise RuntimeError("the penetrator's space does not number the grains' dofs alike")
         self._probes = _Tracked(domain, self.Vp.ufl_element(), self._maps, self._tree)
         self._cone_template, self._cone_area = self._cone_points()   # (area: volume in 3D)
-        self.cone_force = np.zeros(3)   #: the pore pressure's force on the penetrator [N/m]
+        self.cone_force = np.zeros(3)   #: the pore pressure's force on the penetrator [N/m in 2D, N in 3D]
         w = self.weight.x.array
         solid = self._work("solid", self.Vn).x.array
         owned = self.Vn.dofmap.index_map.size_local
@@ -644,10 +644,10 @@ class ChamberFlow(DarcyFlow):
         tip, R, h_cone, r = self.cone_tip(), prm.cone_radius, tip_height(prm), prm.radius
         half = np.radians(prm.apex_deg) / 2
         up = np.eye(3)[ax]
-        out_ = radial_directions(gdim)   # (the faces' outward normal: cos half out, sin half down)
-        face = (R / 2 + r * np.cos(half)) * out_ + (h_cone / 2 - r * np.sin(half)) * up
-        shoulder = (R + r) * out_ + (h_cone + r) * up
-        k = len(out_)
+        radial = radial_directions(gdim)   # (the faces' outward normal: cos half out, sin half down)
+        face = (R / 2 + r * np.cos(half)) * radial + (h_cone / 2 - r * np.sin(half)) * up
+        shoulder = (R + r) * radial + (h_cone + r) * up
+        k = len(radial)
         x = (np.vstack([face, shoulder]) + tip)[:, :gdim]
         below = x[:, ax] < cpt.surface      # (the surface is drained: 0 above it)
         np.minimum(x[:, ax], cpt.surface - 1e-6 * r, out=x[:, ax])
