@@ -442,6 +442,22 @@ def uniaxial_point_driver(mat, strains):
     return np.array(out), info["psi"]
 
 
+def pushed(p, top, strains, components):
+    """The top's prescribed displacement set to each of ``strains`` in turn and solved:
+    Newton's iterations a step, and per step the macro equivalent plastic strain and the
+    nominal stress ``components`` (of 45) of the element's points, which must all hold the
+    same state."""
+    its, out = [], []
+    for e in strains:
+        top.value = e
+        its.append(p.solve())
+        eq = p.state.owned("equivalent_plastic_strain").reshape(-1, 5)
+        stress = p.state.owned("stress").reshape(-1, 45)
+        assert np.ptp(eq[:, 0]) < 1e-10 * eq[:, 0].max()           # homogeneous
+        out.append((eq[0, 0], *stress[0, components]))
+    return its, np.array(out)
+
+
 def test_one_element_uniaxial_compression_equals_the_point():
     """One trilinear hexahedron (u, phi of degree 1, 8 points), symmetry planes, the top
     pushed down 12 % in four steps, sides free, phi free, coupled moduli with all cones:
@@ -467,15 +483,7 @@ def test_one_element_uniaxial_compression_equals_the_point():
         p.fix(lambda x, a=axis: np.isclose(x[a], 0.0), name)
     top = p.fix(lambda x: np.isclose(x[2], 1.0), "u_z", 0.0)
     strains = [-0.02, -0.05, -0.08, -0.12]
-    its, fe = [], []
-    for ezz in strains:
-        top.value = ezz
-        its.append(p.solve())
-        eq = p.state.owned("equivalent_plastic_strain").reshape(-1, 5)
-        stress = p.state.owned("stress").reshape(-1, 45)
-        assert np.ptp(eq[:, 0]) < 1e-10 * eq[:, 0].max()           # homogeneous
-        fe.append((eq[0, 0], stress[0, 8]))
-    fe = np.array(fe)
+    its, fe = pushed(p, top, strains, [8])
     ref, psi = uniaxial_point_driver(mat, strains)
     # the model's UFL stored energy at the committed plastic state = the kernel's psi
     energy = fem.assemble_scalar(fem.form(p.model.stored_energy(p.split(p.w), p.state.committed)
@@ -539,15 +547,7 @@ def test_plane_strain_element_equals_the_plane_strain_point():
     p.fix(lambda x: np.isclose(x[1], 0.0), "u_y")
     top = p.fix(lambda x: np.isclose(x[1], 1.0), "u_y", 0.0)
     strains = [-0.02, -0.05, -0.08, -0.12]
-    its, fe = [], []
-    for eyy in strains:
-        top.value = eyy
-        its.append(p.solve())
-        eq = p.state.owned("equivalent_plastic_strain").reshape(-1, 5)
-        stress = p.state.owned("stress").reshape(-1, 45)
-        assert np.ptp(eq[:, 0]) < 1e-10 * eq[:, 0].max()           # homogeneous
-        fe.append((eq[0, 0], stress[0, 4], stress[0, 8]))
-    fe = np.array(fe)
+    its, fe = pushed(p, top, strains, [4, 8])
     ref = plane_strain_point_driver(mat, strains)
     assert fe[0, 0] > 0 and np.all(np.diff(fe[:, 0]) > 0) and np.all(fe[:, 2] < 0)
     np.testing.assert_allclose(fe, ref, rtol=1e-8)
